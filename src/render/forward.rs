@@ -1,0 +1,343 @@
+//! Forward pass: project, sort by depth, bin into 16×16 tiles, composite each tile in parallel.
+
+use super::project::{Cam, Projection, project};
+use super::{ALPHA_MAX, ALPHA_MIN, Real, RenderError, RenderOptions, T_MIN, TILE, check_inputs};
+use crate::scene::{Camera, Gaussians};
+use rayon::prelude::*;
+
+/// What the compositor needs of one visible Gaussian (compact, in depth order).
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Splat<T> {
+    /// Index of the Gaussian in the scene.
+    pub id: u32,
+    pub depth: T,
+    pub xy: [T; 2],
+    pub conic: [T; 3],
+    pub opacity: T,
+    pub color: [T; 3],
+    /// σ threshold of the footprint: α ≥ 1/255 only where σ ≤ `thr` (with a small margin).
+    pub thr: T,
+    /// Pixel rectangle [x0, x1) × [y0, y1) containing the footprint, clipped to the image.
+    pub rect: [u32; 4],
+}
+
+impl<T: Real> Splat<T> {
+    fn new(id: usize, p: &Projection<T>, cam: &Cam<T>) -> Option<Self> {
+        let o = p.opacity;
+        if !(o >= T::c(ALPHA_MIN)) {
+            return None;
+        }
+        // o·e^(−σ) ≥ 1/255  ⇔  σ ≤ ln(255·o); a margin keeps rounding from losing edge pixels.
+        let thr = (o / T::c(ALPHA_MIN)).ln() + T::c(0.01);
+        let r = (T::c(2.0) * thr * p.lambda_max).sqrt();
+        let half = T::c(0.5);
+        let x0 = (p.xy[0] - r - half).ceil();
+        let x1 = (p.xy[0] + r - half).floor();
+        let y0 = (p.xy[1] - r - half).ceil();
+        let y1 = (p.xy[1] + r - half).floor();
+        let (w, h) = (T::c(cam.width as f64), T::c(cam.height as f64));
+        if !(x1 >= T::zero() && y1 >= T::zero() && x0 < w && y0 < h) {
+            return None; // off screen (or NaN)
+        }
+        let clip = |v: T, hi: T| v.max(T::zero()).min(hi).as_f32() as u32;
+        let rect = [clip(x0, w), clip(y0, h), clip(x1 + T::one(), w), clip(y1 + T::one(), h)];
+        if rect[0] >= rect[2] || rect[1] >= rect[3] {
+            return None;
+        }
+        Some(Self {
+            id: id as u32,
+            depth: p.tc[2],
+            xy: p.xy,
+            conic: p.conic,
+            opacity: o,
+            color: p.color,
+            thr,
+            rect,
+        })
+    }
+
+    /// Columns `[a, b)` of row `py` (within `[x0, x1)`) where the footprint can reach α ≥ 1/255.
+    #[inline(always)]
+    pub fn row_span(&self, py: u32, x0: u32, x1: u32) -> (u32, u32) {
+        let [a, b, c] = self.conic;
+        let half = T::c(0.5);
+        let dy = T::c(py as f64) + half - self.xy[1];
+        // ½a·dx² + b·dy·dx + (½c·dy² − thr) ≤ 0
+        let disc = b * b * dy * dy - a * (c * dy * dy - T::c(2.0) * self.thr);
+        if !(disc >= T::zero()) {
+            return (x0, x0);
+        }
+        let sq = disc.sqrt();
+        let lo = self.xy[0] + (-b * dy - sq) / a - half;
+        let hi = self.xy[0] + (-b * dy + sq) / a - half;
+        let lo = lo.ceil().max(T::c(x0 as f64)).min(T::c(x1 as f64));
+        let hi = (hi.floor() + T::one()).max(T::c(x0 as f64)).min(T::c(x1 as f64));
+        (lo.as_f32() as u32, hi.as_f32() as u32)
+    }
+
+    /// σ at the centre of pixel (px, py) and the offsets d = pixel − mean.
+    #[inline(always)]
+    pub fn sigma(&self, px: u32, py: u32) -> (T, T, T) {
+        let half = T::c(0.5);
+        let dx = T::c(px as f64) + half - self.xy[0];
+        let dy = T::c(py as f64) + half - self.xy[1];
+        let [a, b, c] = self.conic;
+        (half * (a * dx * dx + c * dy * dy) + b * dx * dy, dx, dy)
+    }
+}
+
+/// Counts that describe one render.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
+pub struct RenderStats {
+    /// Gaussians in front of the near plane, non-degenerate and on screen.
+    pub visible: usize,
+    /// (tile, Gaussian) pairs composited.
+    pub tile_entries: usize,
+}
+
+/// The result of a forward pass; keep it to run [`super::backward`].
+pub struct Rendered<T> {
+    pub width: u32,
+    pub height: u32,
+    /// Linear RGB, row-major, not clamped.
+    pub image: Vec<[T; 3]>,
+    /// Σ_p α_i·T_i per Gaussian of the scene, when [`RenderOptions::blend_weights`] is set.
+    pub blend_weights: Option<Vec<T>>,
+    pub stats: RenderStats,
+    pub(crate) state: State<T>,
+}
+
+/// What the backward pass needs from the forward pass.
+pub(crate) struct State<T> {
+    pub cam: Cam<T>,
+    pub sh_degree: u8,
+    pub n_gaussians: usize,
+    pub background: [T; 3],
+    /// Visible Gaussians in depth order.
+    pub splats: Vec<Splat<T>>,
+    pub tiles_x: usize,
+    pub tiles_y: usize,
+    /// Per tile, its range in `entries`.
+    pub tile_ranges: Vec<(u32, u32)>,
+    /// Indices into `splats`, grouped by tile, in depth order within each tile.
+    pub entries: Vec<u32>,
+    /// Per pixel (tile-major, 256 per tile): transmittance left after compositing.
+    pub final_t: Vec<T>,
+    /// Per pixel (tile-major): index within its tile's entries after the last contributor.
+    pub n_contrib: Vec<u32>,
+}
+
+impl<T> State<T> {
+    /// Pixel rectangle of tile `t`: x0, y0, x1, y1.
+    pub fn tile_rect(&self, t: usize) -> [u32; 4] {
+        let (tx, ty) = (t % self.tiles_x, t / self.tiles_x);
+        let x0 = (tx * TILE) as u32;
+        let y0 = (ty * TILE) as u32;
+        [
+            x0,
+            y0,
+            (x0 + TILE as u32).min(self.cam.width as u32),
+            (y0 + TILE as u32).min(self.cam.height as u32),
+        ]
+    }
+}
+
+/// Renders `g` through `camera`.
+pub fn render<T: Real>(
+    g: &Gaussians<T>,
+    camera: &Camera,
+    opts: &RenderOptions,
+) -> Result<Rendered<T>, RenderError> {
+    check_inputs(g, camera, opts)?;
+    let cam = Cam::<T>::new(camera, opts.near);
+    let sh_degree = opts.sh_degree.map_or(g.sh_degree, |d| d.min(g.sh_degree));
+
+    let mut splats: Vec<Splat<T>> = (0..g.len())
+        .into_par_iter()
+        .with_min_len(1024)
+        .filter_map(|i| project(g, i, &cam, sh_degree).and_then(|p| Splat::new(i, &p, &cam)))
+        .collect();
+    splats.par_sort_unstable_by(|a, b| {
+        a.depth.partial_cmp(&b.depth).unwrap_or(std::cmp::Ordering::Equal).then(a.id.cmp(&b.id))
+    });
+
+    let tiles_x = cam.width.div_ceil(TILE);
+    let tiles_y = cam.height.div_ceil(TILE);
+    let (tile_ranges, entries) = bin(&splats, tiles_x, tiles_y);
+    let n_tiles = tiles_x * tiles_y;
+    let px = TILE * TILE;
+
+    let mut color = vec![[T::zero(); 3]; n_tiles * px];
+    let mut final_t = vec![T::one(); n_tiles * px];
+    let mut n_contrib = vec![0u32; n_tiles * px];
+    let mut weights = vec![T::zero(); entries.len()];
+    let weight_slices = split_by_ranges(&mut weights, &tile_ranges);
+
+    let mut state = State {
+        cam,
+        sh_degree,
+        n_gaussians: g.len(),
+        background: opts.background.map(T::from_f32),
+        splats,
+        tiles_x,
+        tiles_y,
+        tile_ranges,
+        entries,
+        final_t: Vec::new(),
+        n_contrib: Vec::new(),
+    };
+    {
+        let st = &state;
+        color
+            .par_chunks_mut(px)
+            .zip(final_t.par_chunks_mut(px))
+            .zip(n_contrib.par_chunks_mut(px))
+            .zip(weight_slices)
+            .enumerate()
+            .for_each(|(t, (((c, tt), n), w))| raster_tile(st, t, c, tt, n, w));
+    }
+
+    // Tile-major → row-major, adding the background behind what is left of T.
+    let (w, h) = (state.cam.width, state.cam.height);
+    let bg = state.background;
+    let mut image = vec![[T::zero(); 3]; w * h];
+    image.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        let ty = y / TILE;
+        let ly = y % TILE;
+        for (x, out) in row.iter_mut().enumerate() {
+            let k = (ty * tiles_x + x / TILE) * px + ly * TILE + x % TILE;
+            let t = final_t[k];
+            *out = std::array::from_fn(|ch| color[k][ch] + t * bg[ch]);
+        }
+    });
+
+    let blend_weights = opts.blend_weights.then(|| reduce_weights(&state, &weights));
+    let stats = RenderStats { visible: state.splats.len(), tile_entries: state.entries.len() };
+    state.final_t = final_t;
+    state.n_contrib = n_contrib;
+    Ok(Rendered { width: w as u32, height: h as u32, image, blend_weights, stats, state })
+}
+
+/// Groups splats by the tiles their rectangles touch, keeping depth order within each tile.
+fn bin<T: Real>(splats: &[Splat<T>], tiles_x: usize, tiles_y: usize) -> (Vec<(u32, u32)>, Vec<u32>) {
+    let tile_span = |s: &Splat<T>| {
+        let t = TILE as u32;
+        (s.rect[0] / t, s.rect[1] / t, (s.rect[2] - 1) / t + 1, (s.rect[3] - 1) / t + 1)
+    };
+    let mut counts = vec![0u32; tiles_x * tiles_y];
+    for s in splats {
+        let (x0, y0, x1, y1) = tile_span(s);
+        for ty in y0..y1 {
+            let row = ty as usize * tiles_x;
+            for tx in x0..x1 {
+                counts[row + tx as usize] += 1;
+            }
+        }
+    }
+    let mut ranges = Vec::with_capacity(counts.len());
+    let mut acc = 0u32;
+    for &c in &counts {
+        ranges.push((acc, acc + c));
+        acc += c;
+    }
+    let mut cursor: Vec<u32> = ranges.iter().map(|r| r.0).collect();
+    let mut entries = vec![0u32; acc as usize];
+    for (k, s) in splats.iter().enumerate() {
+        let (x0, y0, x1, y1) = tile_span(s);
+        for ty in y0..y1 {
+            let row = ty as usize * tiles_x;
+            for tx in x0..x1 {
+                let c = &mut cursor[row + tx as usize];
+                entries[*c as usize] = k as u32;
+                *c += 1;
+            }
+        }
+    }
+    (ranges, entries)
+}
+
+/// Splits `v` into the consecutive, non-overlapping `ranges` (which must cover it in order).
+pub(crate) fn split_by_ranges<'a, U>(mut v: &'a mut [U], ranges: &[(u32, u32)]) -> Vec<&'a mut [U]> {
+    let mut out = Vec::with_capacity(ranges.len());
+    for &(a, b) in ranges {
+        let (head, tail) = v.split_at_mut((b - a) as usize);
+        out.push(head);
+        v = tail;
+    }
+    out
+}
+
+fn reduce_weights<T: Real>(st: &State<T>, per_entry: &[T]) -> Vec<T> {
+    let mut out = vec![T::zero(); st.n_gaussians];
+    for (&e, &w) in st.entries.iter().zip(per_entry) {
+        let id = st.splats[e as usize].id as usize;
+        out[id] = out[id] + w;
+    }
+    out
+}
+
+fn raster_tile<T: Real>(
+    st: &State<T>,
+    t: usize,
+    color: &mut [[T; 3]],
+    trans: &mut [T],
+    n_contrib: &mut [u32],
+    weights: &mut [T],
+) {
+    let [tx0, ty0, tx1, ty1] = st.tile_rect(t);
+    let (start, end) = st.tile_ranges[t];
+    let entries = &st.entries[start as usize..end as usize];
+    let mut done = [false; TILE * TILE];
+    let mut n_done = TILE * TILE - ((tx1 - tx0) * (ty1 - ty0)) as usize;
+    for ly in 0..TILE {
+        for lx in 0..TILE {
+            if tx0 + lx as u32 >= tx1 || ty0 + ly as u32 >= ty1 {
+                done[ly * TILE + lx] = true;
+            }
+        }
+    }
+    let alpha_min = T::c(ALPHA_MIN);
+    let alpha_max = T::c(ALPHA_MAX);
+    let t_min = T::c(T_MIN);
+    for (j, &e) in entries.iter().enumerate() {
+        if n_done == TILE * TILE {
+            break;
+        }
+        let s = &st.splats[e as usize];
+        let x0 = s.rect[0].max(tx0);
+        let x1 = s.rect[2].min(tx1);
+        let y0 = s.rect[1].max(ty0);
+        let y1 = s.rect[3].min(ty1);
+        let mut wsum = T::zero();
+        for py in y0..y1 {
+            let (a, b) = s.row_span(py, x0, x1);
+            let row = ((py - ty0) as usize) * TILE;
+            for px in a..b {
+                let p = row + (px - tx0) as usize;
+                if done[p] {
+                    continue;
+                }
+                let (sigma, _, _) = s.sigma(px, py);
+                let alpha = (s.opacity * (-sigma).exp()).min(alpha_max);
+                if alpha < alpha_min {
+                    continue;
+                }
+                let t_p = trans[p];
+                let test_t = t_p * (T::one() - alpha);
+                if test_t < t_min {
+                    done[p] = true;
+                    n_done += 1;
+                    continue;
+                }
+                let w = alpha * t_p;
+                for ch in 0..3 {
+                    color[p][ch] = color[p][ch] + s.color[ch] * w;
+                }
+                wsum = wsum + w;
+                trans[p] = test_t;
+                n_contrib[p] = j as u32 + 1;
+            }
+        }
+        weights[j] = wsum;
+    }
+}
