@@ -1,1 +1,99 @@
-fn main() {}
+//! Rasterizer benchmarks: forward and forward + backward at 800×800 on synthetic scenes of 10k,
+//! 100k and 1M Gaussians, and on the real scenes in ../shared/data when present.
+//!
+//! Run: `cargo bench --bench render` (add `-- --quick` for fewer repetitions). Prints a Markdown
+//! table; figures are recorded in docs/BENCHMARKS.md.
+
+use splatmark::render::{RenderOptions, backward, render};
+use splatmark::scene::{Camera, Gaussians, synthetic};
+use std::time::{Duration, Instant};
+
+fn median(mut v: Vec<Duration>) -> f64 {
+    v.sort();
+    v[v.len() / 2].as_secs_f64() * 1e3
+}
+
+fn camera_for(radius: f32, width: u32, height: u32) -> Camera {
+    // Looking at the origin from distance 3·radius along −z, 50° vertical field of view.
+    let f = height as f32 / 2.0 / (25f32.to_radians()).tan();
+    let eye = glam::Vec3::new(0.3 * radius, -0.4 * radius, -3.0 * radius);
+    let fwd = (-eye).normalize();
+    let right = glam::Vec3::Y.cross(fwd).normalize();
+    let down = fwd.cross(right);
+    let c2w = glam::Mat3::from_cols(right, down, fwd);
+    Camera::from_pose(
+        "bench",
+        width,
+        height,
+        f,
+        f,
+        width as f32 / 2.0,
+        height as f32 / 2.0,
+        c2w,
+        eye,
+    )
+}
+
+fn bench(name: &str, g: &Gaussians, cam: &Camera, reps: usize) {
+    let opts = RenderOptions::default();
+    let warm = render(g, cam, &opts).expect("render");
+    let stats = warm.stats;
+    let mut fwd = Vec::new();
+    let mut both = Vec::new();
+    let d_image = vec![[1.0f32 / (cam.width * cam.height) as f32; 3]; warm.image.len()];
+    for _ in 0..reps {
+        let t0 = Instant::now();
+        let r = render(g, cam, &opts).expect("render");
+        fwd.push(t0.elapsed());
+        let t1 = Instant::now();
+        let r2 = render(g, cam, &opts).expect("render");
+        let grads = backward(g, &r2, &d_image).expect("backward");
+        both.push(t1.elapsed());
+        std::hint::black_box((r, grads));
+    }
+    println!(
+        "| {name} | {} | {}×{} | {} | {} | {:.1} | {:.1} |",
+        g.len(),
+        cam.width,
+        cam.height,
+        stats.visible,
+        stats.tile_entries,
+        median(fwd),
+        median(both)
+    );
+}
+
+fn main() {
+    let quick = std::env::args().any(|a| a == "--quick");
+    let reps = if quick { 3 } else { 9 };
+    println!(
+        "threads: {}, reps: {reps} (median)\n\n| scene | Gaussians | image | visible | tile entries | forward ms | forward+backward ms |\n|---|---|---|---|---|---|---|",
+        rayon::current_num_threads()
+    );
+    for n in [10_000, 100_000, 1_000_000] {
+        let g = synthetic::object_scene(n, 3, 42);
+        bench(
+            &format!("synthetic SH3 {}k", n / 1000),
+            &g,
+            &camera_for(1.0, 800, 800),
+            reps,
+        );
+    }
+    let data = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/scenes");
+    let donut = data.join("donut/fused.ply");
+    if donut.exists() {
+        let g = splatmark::scene::read_scene(&donut, &Default::default()).expect("donut");
+        let b = splatmark::scene::bounds::robust_bounds(&g, 0.02).expect("bounds");
+        let c = b.center();
+        let mut g = g;
+        for m in &mut g.means {
+            for a in 0..3 {
+                m[a] -= c[a];
+            }
+        }
+        let r = b.extent().iter().fold(0f32, |a, &e| a.max(e)) * 0.5;
+        bench("donut (real, SH0)", &g, &camera_for(r, 800, 800), reps);
+    } else {
+        eprintln!("SKIPPED donut: {} not found", donut.display());
+    }
+}

@@ -28,7 +28,10 @@ pub fn backward<T: Real>(
 ) -> Result<Gradients<T>, RenderError> {
     let st = &fwd.state;
     if d_image.len() != fwd.image.len() {
-        return Err(RenderError::GradientSize { got: d_image.len(), expected: fwd.image.len() });
+        return Err(RenderError::GradientSize {
+            got: d_image.len(),
+            expected: fwd.image.len(),
+        });
     }
     if g.len() != st.n_gaussians {
         return Err(RenderError::BadScene(format!(
@@ -67,7 +70,15 @@ pub fn backward<T: Real>(
             let i = s.id as usize;
             let p = project(g, i, &st.cam, st.sh_degree)
                 .expect("a Gaussian visible in the forward pass projects again");
-            project_backward(g, i, &st.cam, st.sh_degree, &p, sg, &mut rest_out[..rest_len])
+            project_backward(
+                g,
+                i,
+                &st.cam,
+                st.sh_degree,
+                &p,
+                sg,
+                &mut rest_out[..rest_len],
+            )
         })
         .collect();
 
@@ -94,7 +105,10 @@ pub fn backward<T: Real>(
             .copy_from_slice(&rest[k * stride..k * stride + rest_len]);
         blend_weights[i] = per_splat[k].1;
     }
-    Ok(Gradients { params, blend_weights })
+    Ok(Gradients {
+        params,
+        blend_weights,
+    })
 }
 
 #[inline(always)]
@@ -116,7 +130,8 @@ fn backward_tile<T: Real>(
     out: &mut [(ScreenGrad<T>, T)],
 ) {
     const N: usize = TILE * TILE;
-    let [tx0, ty0, tx1, ty1] = st.tile_rect(t);
+    let tile = st.tile_rect(t);
+    let [tx0, ty0, tx1, ty1] = tile;
     let (start, end) = st.tile_ranges[t];
     let entries = &st.entries[start as usize..end as usize];
     let base = t * N;
@@ -147,53 +162,43 @@ fn backward_tile<T: Real>(
 
     for j in (0..max_n.min(entries.len())).rev() {
         let s = &st.splats[entries[j] as usize];
-        let x0 = s.rect[0].max(tx0);
-        let x1 = s.rect[2].min(tx1);
-        let y0 = s.rect[1].max(ty0);
-        let y1 = s.rect[3].min(ty1);
         let [ca, cb, cc] = s.conic;
         let mut sg = ScreenGrad::<T>::default();
         let mut wsum = zero;
-        for py in y0..y1 {
-            let (a, b) = s.row_span(py, x0, x1);
-            let row = ((py - ty0) as usize) * TILE;
-            for px in a..b {
-                let p = row + (px - tx0) as usize;
-                if j as u32 >= n_contrib[p] {
-                    continue;
-                }
-                let (sigma, dx, dy) = s.sigma(px, py);
-                let gauss = (-sigma).exp();
-                let og = s.opacity * gauss;
-                let alpha = og.min(alpha_max);
-                if alpha < alpha_min {
-                    continue;
-                }
-                let t_p = trans[p] / (one - alpha);
-                trans[p] = t_p;
-                let w = alpha * t_p;
-                wsum = wsum + w;
-                let mut d_alpha = zero;
-                for ch in 0..3 {
-                    acc[p][ch] = last_alpha[p] * last_color[p][ch] + (one - last_alpha[p]) * acc[p][ch];
-                    last_color[p][ch] = s.color[ch];
-                    d_alpha = d_alpha + (s.color[ch] - acc[p][ch]) * dpix[p][ch];
-                    sg.color[ch] = sg.color[ch] + w * dpix[p][ch];
-                }
-                d_alpha = d_alpha * t_p - final_t[p] / (one - alpha) * bg_dot[p];
-                last_alpha[p] = alpha;
-                if og < alpha_max {
-                    // α = o·G, G = e^(−σ), σ = ½a·dx² + b·dx·dy + ½c·dy², d = pixel − mean.
-                    sg.opacity = sg.opacity + gauss * d_alpha;
-                    let d_g = s.opacity * d_alpha * gauss; // ∂L/∂(−σ)
-                    sg.xy[0] = sg.xy[0] + d_g * (ca * dx + cb * dy);
-                    sg.xy[1] = sg.xy[1] + d_g * (cb * dx + cc * dy);
-                    sg.conic[0] = sg.conic[0] - d_g * half * dx * dx;
-                    sg.conic[1] = sg.conic[1] - d_g * dx * dy;
-                    sg.conic[2] = sg.conic[2] - d_g * half * dy * dy;
-                }
+        s.for_pixels(tile, |p, sigma, dx, dy| {
+            if j as u32 >= n_contrib[p] {
+                return;
             }
-        }
+            let gauss = (-sigma).exp();
+            let og = s.opacity * gauss;
+            let alpha = og.min(alpha_max);
+            if alpha < alpha_min {
+                return;
+            }
+            let t_p = trans[p] / (one - alpha);
+            trans[p] = t_p;
+            let w = alpha * t_p;
+            wsum = wsum + w;
+            let mut d_alpha = zero;
+            for ch in 0..3 {
+                acc[p][ch] = last_alpha[p] * last_color[p][ch] + (one - last_alpha[p]) * acc[p][ch];
+                last_color[p][ch] = s.color[ch];
+                d_alpha = d_alpha + (s.color[ch] - acc[p][ch]) * dpix[p][ch];
+                sg.color[ch] = sg.color[ch] + w * dpix[p][ch];
+            }
+            d_alpha = d_alpha * t_p - final_t[p] / (one - alpha) * bg_dot[p];
+            last_alpha[p] = alpha;
+            if og < alpha_max {
+                // α = o·G, G = e^(−σ), σ = ½a·dx² + b·dx·dy + ½c·dy², d = pixel − mean.
+                sg.opacity = sg.opacity + gauss * d_alpha;
+                let d_g = s.opacity * d_alpha * gauss; // ∂L/∂(−σ)
+                sg.xy[0] = sg.xy[0] + d_g * (ca * dx + cb * dy);
+                sg.xy[1] = sg.xy[1] + d_g * (cb * dx + cc * dy);
+                sg.conic[0] = sg.conic[0] - d_g * half * dx * dx;
+                sg.conic[1] = sg.conic[1] - d_g * dx * dy;
+                sg.conic[2] = sg.conic[2] - d_g * half * dy * dy;
+            }
+        });
         out[j] = (sg, wsum);
     }
 }

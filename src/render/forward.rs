@@ -40,7 +40,12 @@ impl<T: Real> Splat<T> {
             return None; // off screen (or NaN)
         }
         let clip = |v: T, hi: T| v.max(T::zero()).min(hi).as_f32() as u32;
-        let rect = [clip(x0, w), clip(y0, h), clip(x1 + T::one(), w), clip(y1 + T::one(), h)];
+        let rect = [
+            clip(x0, w),
+            clip(y0, h),
+            clip(x1 + T::one(), w),
+            clip(y1 + T::one(), h),
+        ];
         if rect[0] >= rect[2] || rect[1] >= rect[3] {
             return None;
         }
@@ -58,31 +63,102 @@ impl<T: Real> Splat<T> {
 
     /// Columns `[a, b)` of row `py` (within `[x0, x1)`) where the footprint can reach α ≥ 1/255.
     #[inline(always)]
-    pub fn row_span(&self, py: u32, x0: u32, x1: u32) -> (u32, u32) {
+    fn row_span(&self, dy: T, x0: u32, x1: u32) -> (u32, u32) {
         let [a, b, c] = self.conic;
-        let half = T::c(0.5);
-        let dy = T::c(py as f64) + half - self.xy[1];
         // ½a·dx² + b·dy·dx + (½c·dy² − thr) ≤ 0
         let disc = b * b * dy * dy - a * (c * dy * dy - T::c(2.0) * self.thr);
         if !(disc >= T::zero()) {
             return (x0, x0);
         }
         let sq = disc.sqrt();
+        let half = T::c(0.5);
         let lo = self.xy[0] + (-b * dy - sq) / a - half;
         let hi = self.xy[0] + (-b * dy + sq) / a - half;
         let lo = lo.ceil().max(T::c(x0 as f64)).min(T::c(x1 as f64));
-        let hi = (hi.floor() + T::one()).max(T::c(x0 as f64)).min(T::c(x1 as f64));
+        let hi = (hi.floor() + T::one())
+            .max(T::c(x0 as f64))
+            .min(T::c(x1 as f64));
         (lo.as_f32() as u32, hi.as_f32() as u32)
     }
 
-    /// σ at the centre of pixel (px, py) and the offsets d = pixel − mean.
+    /// Calls `f(p, σ, dx, dy)` for every pixel of the tile `[x0, y0, x1, y1]` (p = index within
+    /// the 16×16 tile) that lies in this splat's footprint, with σ = ½dᵀΣ′⁻¹d at the pixel centre
+    /// and d = centre − mean. Forward and backward both go through here, so they see exactly the
+    /// same σ for every pixel.
     #[inline(always)]
-    pub fn sigma(&self, px: u32, py: u32) -> (T, T, T) {
-        let half = T::c(0.5);
-        let dx = T::c(px as f64) + half - self.xy[0];
-        let dy = T::c(py as f64) + half - self.xy[1];
+    pub fn for_pixels(&self, tile: [u32; 4], mut f: impl FnMut(usize, T, T, T)) {
+        let x0 = self.rect[0].max(tile[0]);
+        let x1 = self.rect[2].min(tile[2]);
+        let y0 = self.rect[1].max(tile[1]);
+        let y1 = self.rect[3].min(tile[3]);
         let [a, b, c] = self.conic;
-        (half * (a * dx * dx + c * dy * dy) + b * dx * dy, dx, dy)
+        let half = T::c(0.5);
+        let half_a = half * a;
+        for py in y0..y1 {
+            let dy = T::c(py as f64) + half - self.xy[1];
+            let (lo, hi) = self.row_span(dy, x0, x1);
+            let row_c = half * c * dy * dy;
+            let b_dy = b * dy;
+            let row = ((py - tile[1]) as usize) * TILE;
+            for px in lo..hi {
+                let dx = T::c(px as f64) + half - self.xy[0];
+                let sigma = dx * (half_a * dx + b_dy) + row_c;
+                f(
+                    (row + (px - tile[0]) as usize) & (TILE * TILE - 1),
+                    sigma,
+                    dx,
+                    dy,
+                );
+            }
+        }
+    }
+
+    /// Tile columns `[a, b)` touched by the footprint within tile row `ty` (pixel rows
+    /// `[y0, y1)`): the exact x-extent of the ellipse over that band of pixel centres.
+    fn band_tiles(&self, y0: u32, y1: u32, tiles_x: usize) -> (u32, u32) {
+        let [a, b, c] = self.conic;
+        let half = T::c(0.5);
+        let det = a * c - b * b;
+        let dy_max = (T::c(2.0) * a * self.thr / det).sqrt();
+        let lo_dy = (T::c(y0 as f64) + half - self.xy[1]).max(-dy_max);
+        let hi_dy = (T::c(y1 as f64) - half - self.xy[1]).min(dy_max);
+        if !(lo_dy <= hi_dy) {
+            return (0, 0);
+        }
+        let disc = |dy: T| {
+            (T::c(2.0) * a * self.thr - det * dy * dy)
+                .max(T::zero())
+                .sqrt()
+        };
+        let left = |dy: T| (-b * dy - disc(dy)) / a;
+        let right = |dy: T| (-b * dy + disc(dy)) / a;
+        // Extreme x of the whole ellipse and the dy where it is reached.
+        let dx_max = (T::c(2.0) * self.thr * c / det).sqrt();
+        let dy_at_right = -b * dx_max / c;
+        let in_band = |dy: T| dy >= lo_dy && dy <= hi_dy;
+        let r = if in_band(dy_at_right) {
+            dx_max
+        } else {
+            right(lo_dy).max(right(hi_dy))
+        };
+        let l = if in_band(-dy_at_right) {
+            -dx_max
+        } else {
+            left(lo_dy).min(left(hi_dy))
+        };
+        let px_lo = (self.xy[0] + l - half)
+            .ceil()
+            .max(T::c(self.rect[0] as f64));
+        let px_hi = (self.xy[0] + r - half)
+            .floor()
+            .min(T::c(self.rect[2] as f64 - 1.0));
+        if !(px_lo <= px_hi) {
+            return (0, 0);
+        }
+        let t = TILE as u32;
+        let a0 = px_lo.as_f32() as u32 / t;
+        let a1 = (px_hi.as_f32() as u32 / t + 1).min(tiles_x as u32);
+        (a0, a1)
     }
 }
 
@@ -116,7 +192,6 @@ pub(crate) struct State<T> {
     /// Visible Gaussians in depth order.
     pub splats: Vec<Splat<T>>,
     pub tiles_x: usize,
-    pub tiles_y: usize,
     /// Per tile, its range in `entries`.
     pub tile_ranges: Vec<(u32, u32)>,
     /// Indices into `splats`, grouped by tile, in depth order within each tile.
@@ -152,14 +227,24 @@ pub fn render<T: Real>(
     let cam = Cam::<T>::new(camera, opts.near);
     let sh_degree = opts.sh_degree.map_or(g.sh_degree, |d| d.min(g.sh_degree));
 
-    let mut splats: Vec<Splat<T>> = (0..g.len())
+    let unsorted: Vec<Splat<T>> = (0..g.len())
         .into_par_iter()
         .with_min_len(1024)
         .filter_map(|i| project(g, i, &cam, sh_degree).and_then(|p| Splat::new(i, &p, &cam)))
         .collect();
-    splats.par_sort_unstable_by(|a, b| {
-        a.depth.partial_cmp(&b.depth).unwrap_or(std::cmp::Ordering::Equal).then(a.id.cmp(&b.id))
-    });
+    // Sort (depth, position) keys rather than the splats themselves: depths are positive, so
+    // their f32 bit patterns order like the values; ties keep scene order.
+    let mut keys: Vec<u64> = unsorted
+        .iter()
+        .enumerate()
+        .map(|(k, s)| ((s.depth.as_f32().to_bits() as u64) << 32) | k as u64)
+        .collect();
+    keys.par_sort_unstable();
+    let splats: Vec<Splat<T>> = keys
+        .par_iter()
+        .map(|&k| unsorted[(k & 0xFFFF_FFFF) as usize])
+        .collect();
+    drop(unsorted);
 
     let tiles_x = cam.width.div_ceil(TILE);
     let tiles_y = cam.height.div_ceil(TILE);
@@ -180,7 +265,6 @@ pub fn render<T: Real>(
         background: opts.background.map(T::from_f32),
         splats,
         tiles_x,
-        tiles_y,
         tile_ranges,
         entries,
         final_t: Vec::new(),
@@ -212,27 +296,44 @@ pub fn render<T: Real>(
     });
 
     let blend_weights = opts.blend_weights.then(|| reduce_weights(&state, &weights));
-    let stats = RenderStats { visible: state.splats.len(), tile_entries: state.entries.len() };
+    let stats = RenderStats {
+        visible: state.splats.len(),
+        tile_entries: state.entries.len(),
+    };
     state.final_t = final_t;
     state.n_contrib = n_contrib;
-    Ok(Rendered { width: w as u32, height: h as u32, image, blend_weights, stats, state })
+    Ok(Rendered {
+        width: w as u32,
+        height: h as u32,
+        image,
+        blend_weights,
+        stats,
+        state,
+    })
 }
 
 /// Groups splats by the tiles their rectangles touch, keeping depth order within each tile.
-fn bin<T: Real>(splats: &[Splat<T>], tiles_x: usize, tiles_y: usize) -> (Vec<(u32, u32)>, Vec<u32>) {
-    let tile_span = |s: &Splat<T>| {
-        let t = TILE as u32;
-        (s.rect[0] / t, s.rect[1] / t, (s.rect[2] - 1) / t + 1, (s.rect[3] - 1) / t + 1)
+fn bin<T: Real>(
+    splats: &[Splat<T>],
+    tiles_x: usize,
+    tiles_y: usize,
+) -> (Vec<(u32, u32)>, Vec<u32>) {
+    let t = TILE as u32;
+    // Visit every (tile, splat) pair whose tile the ellipse really touches.
+    let for_tiles = |s: &Splat<T>, f: &mut dyn FnMut(usize)| {
+        for ty in s.rect[1] / t..(s.rect[3] - 1) / t + 1 {
+            let y0 = (ty * t).max(s.rect[1]);
+            let y1 = ((ty + 1) * t).min(s.rect[3]);
+            let (a, b) = s.band_tiles(y0, y1, tiles_x);
+            let row = ty as usize * tiles_x;
+            for tx in a..b {
+                f(row + tx as usize);
+            }
+        }
     };
     let mut counts = vec![0u32; tiles_x * tiles_y];
     for s in splats {
-        let (x0, y0, x1, y1) = tile_span(s);
-        for ty in y0..y1 {
-            let row = ty as usize * tiles_x;
-            for tx in x0..x1 {
-                counts[row + tx as usize] += 1;
-            }
-        }
+        for_tiles(s, &mut |k| counts[k] += 1);
     }
     let mut ranges = Vec::with_capacity(counts.len());
     let mut acc = 0u32;
@@ -243,21 +344,20 @@ fn bin<T: Real>(splats: &[Splat<T>], tiles_x: usize, tiles_y: usize) -> (Vec<(u3
     let mut cursor: Vec<u32> = ranges.iter().map(|r| r.0).collect();
     let mut entries = vec![0u32; acc as usize];
     for (k, s) in splats.iter().enumerate() {
-        let (x0, y0, x1, y1) = tile_span(s);
-        for ty in y0..y1 {
-            let row = ty as usize * tiles_x;
-            for tx in x0..x1 {
-                let c = &mut cursor[row + tx as usize];
-                entries[*c as usize] = k as u32;
-                *c += 1;
-            }
-        }
+        for_tiles(s, &mut |tile| {
+            let c = &mut cursor[tile];
+            entries[*c as usize] = k as u32;
+            *c += 1;
+        });
     }
     (ranges, entries)
 }
 
 /// Splits `v` into the consecutive, non-overlapping `ranges` (which must cover it in order).
-pub(crate) fn split_by_ranges<'a, U>(mut v: &'a mut [U], ranges: &[(u32, u32)]) -> Vec<&'a mut [U]> {
+pub(crate) fn split_by_ranges<'a, U>(
+    mut v: &'a mut [U],
+    ranges: &[(u32, u32)],
+) -> Vec<&'a mut [U]> {
     let mut out = Vec::with_capacity(ranges.len());
     for &(a, b) in ranges {
         let (head, tail) = v.split_at_mut((b - a) as usize);
@@ -279,65 +379,61 @@ fn reduce_weights<T: Real>(st: &State<T>, per_entry: &[T]) -> Vec<T> {
 fn raster_tile<T: Real>(
     st: &State<T>,
     t: usize,
-    color: &mut [[T; 3]],
-    trans: &mut [T],
-    n_contrib: &mut [u32],
+    color_out: &mut [[T; 3]],
+    trans_out: &mut [T],
+    n_contrib_out: &mut [u32],
     weights: &mut [T],
 ) {
-    let [tx0, ty0, tx1, ty1] = st.tile_rect(t);
+    const N: usize = TILE * TILE;
+    let tile = st.tile_rect(t);
+    let [tx0, ty0, tx1, ty1] = tile;
     let (start, end) = st.tile_ranges[t];
     let entries = &st.entries[start as usize..end as usize];
-    let mut done = [false; TILE * TILE];
-    let mut n_done = TILE * TILE - ((tx1 - tx0) * (ty1 - ty0)) as usize;
-    for ly in 0..TILE {
-        for lx in 0..TILE {
-            if tx0 + lx as u32 >= tx1 || ty0 + ly as u32 >= ty1 {
-                done[ly * TILE + lx] = true;
-            }
+    let mut done = [true; N];
+    for ly in 0..(ty1 - ty0) as usize {
+        for lx in 0..(tx1 - tx0) as usize {
+            done[ly * TILE + lx] = false;
         }
     }
+    let mut n_done = N - ((tx1 - tx0) * (ty1 - ty0)) as usize;
+    let mut trans = [T::one(); N];
+    let mut color = [[T::zero(); 3]; N];
+    let mut n_contrib = [0u32; N];
     let alpha_min = T::c(ALPHA_MIN);
     let alpha_max = T::c(ALPHA_MAX);
     let t_min = T::c(T_MIN);
     for (j, &e) in entries.iter().enumerate() {
-        if n_done == TILE * TILE {
+        if n_done == N {
             break;
         }
         let s = &st.splats[e as usize];
-        let x0 = s.rect[0].max(tx0);
-        let x1 = s.rect[2].min(tx1);
-        let y0 = s.rect[1].max(ty0);
-        let y1 = s.rect[3].min(ty1);
         let mut wsum = T::zero();
-        for py in y0..y1 {
-            let (a, b) = s.row_span(py, x0, x1);
-            let row = ((py - ty0) as usize) * TILE;
-            for px in a..b {
-                let p = row + (px - tx0) as usize;
-                if done[p] {
-                    continue;
-                }
-                let (sigma, _, _) = s.sigma(px, py);
-                let alpha = (s.opacity * (-sigma).exp()).min(alpha_max);
-                if alpha < alpha_min {
-                    continue;
-                }
-                let t_p = trans[p];
-                let test_t = t_p * (T::one() - alpha);
-                if test_t < t_min {
-                    done[p] = true;
-                    n_done += 1;
-                    continue;
-                }
-                let w = alpha * t_p;
-                for ch in 0..3 {
-                    color[p][ch] = color[p][ch] + s.color[ch] * w;
-                }
-                wsum = wsum + w;
-                trans[p] = test_t;
-                n_contrib[p] = j as u32 + 1;
+        s.for_pixels(tile, |p, sigma, _, _| {
+            if done[p] {
+                return;
             }
-        }
+            let alpha = (s.opacity * (-sigma).exp()).min(alpha_max);
+            if alpha < alpha_min {
+                return;
+            }
+            let t_p = trans[p];
+            let test_t = t_p * (T::one() - alpha);
+            if test_t < t_min {
+                done[p] = true;
+                n_done += 1;
+                return;
+            }
+            let w = alpha * t_p;
+            for (c, sc) in color[p].iter_mut().zip(s.color) {
+                *c = *c + sc * w;
+            }
+            wsum = wsum + w;
+            trans[p] = test_t;
+            n_contrib[p] = j as u32 + 1;
+        });
         weights[j] = wsum;
     }
+    color_out.copy_from_slice(&color);
+    trans_out.copy_from_slice(&trans);
+    n_contrib_out.copy_from_slice(&n_contrib);
 }

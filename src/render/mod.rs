@@ -88,7 +88,12 @@ pub struct RenderOptions {
 
 impl Default for RenderOptions {
     fn default() -> Self {
-        Self { background: [0.0; 3], near: 0.01, sh_degree: None, blend_weights: false }
+        Self {
+            background: [0.0; 3],
+            near: 0.01,
+            sh_degree: None,
+            blend_weights: false,
+        }
     }
 }
 
@@ -113,7 +118,10 @@ pub(crate) fn check_inputs<T: Real>(
     cam: &Camera,
     opts: &RenderOptions,
 ) -> Result<(), RenderError> {
-    let bad = |why: &str| RenderError::BadCamera { name: cam.name.clone(), why: why.to_string() };
+    let bad = |why: &str| RenderError::BadCamera {
+        name: cam.name.clone(),
+        why: why.to_string(),
+    };
     if cam.width == 0 || cam.height == 0 {
         return Err(bad("zero width or height"));
     }
@@ -124,7 +132,13 @@ pub(crate) fn check_inputs<T: Real>(
     if intr.iter().any(|v| !v.is_finite()) || cam.fx <= 0.0 || cam.fy <= 0.0 {
         return Err(bad("focal lengths must be positive and finite"));
     }
-    if cam.rotation.iter().flatten().chain(&cam.translation).any(|v| !v.is_finite()) {
+    if cam
+        .rotation
+        .iter()
+        .flatten()
+        .chain(&cam.translation)
+        .any(|v| !v.is_finite())
+    {
         return Err(bad("pose is not finite"));
     }
     if !(opts.near.is_finite() && opts.near > 0.0) {

@@ -73,9 +73,21 @@ pub(crate) fn quat_to_mat<T: Real>(q: [T; 4]) -> M3<T> {
     let one = T::one();
     let two = T::c(2.0);
     [
-        [one - two * (y * y + z * z), two * (x * y - w * z), two * (x * z + w * y)],
-        [two * (x * y + w * z), one - two * (x * x + z * z), two * (y * z - w * x)],
-        [two * (x * z - w * y), two * (y * z + w * x), one - two * (x * x + y * y)],
+        [
+            one - two * (y * y + z * z),
+            two * (x * y - w * z),
+            two * (x * z + w * y),
+        ],
+        [
+            two * (x * y + w * z),
+            one - two * (x * x + z * z),
+            two * (y * z - w * x),
+        ],
+        [
+            two * (x * z - w * y),
+            two * (y * z + w * x),
+            one - two * (x * x + y * y),
+        ],
     ]
 }
 
@@ -121,7 +133,10 @@ pub(crate) fn project<T: Real>(
         return None;
     }
     let inv_z = T::one() / z;
-    let xy = [cam.fx * tc[0] * inv_z + cam.cx, cam.fy * tc[1] * inv_z + cam.cy];
+    let xy = [
+        cam.fx * tc[0] * inv_z + cam.cx,
+        cam.fy * tc[1] * inv_z + cam.cy,
+    ];
 
     // 3D covariance Σ = M Mᵀ, M = R S.
     let (q, _) = normalized(g.rotations[i]);
@@ -156,14 +171,29 @@ pub(crate) fn project<T: Real>(
 
     let opacity = sigmoid(g.opacity_logits[i]);
     let (color, clamped) = sh_color(g, i, cam, sh_degree);
-    Some(Projection { tc, xy, cov2, conic, opacity, color, clamped, lambda_max })
+    Some(Projection {
+        tc,
+        xy,
+        cov2,
+        conic,
+        opacity,
+        color,
+        clamped,
+        lambda_max,
+    })
 }
 
 /// Unit direction camera centre → Gaussian and the distance.
 #[inline(always)]
 fn view_dir<T: Real>(m: [T; 3], cam: &Cam<T>) -> ([T; 3], T) {
-    let v = [m[0] - cam.center[0], m[1] - cam.center[1], m[2] - cam.center[2]];
-    let len = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt().max(T::c(1e-12));
+    let v = [
+        m[0] - cam.center[0],
+        m[1] - cam.center[1],
+        m[2] - cam.center[2],
+    ];
+    let len = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+        .sqrt()
+        .max(T::c(1e-12));
     (v.map(|x| x / len), len)
 }
 
@@ -208,7 +238,11 @@ fn cov2d<T: Real>(tm: &[[T; 3]; 2], sig: &M3<T>) -> (T, T, T) {
         std::array::from_fn(|c| tm[r][0] * sig[0][c] + tm[r][1] * sig[1][c] + tm[r][2] * sig[2][c])
     });
     let dot = |a: &[T; 3], b: &[T; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
-    (dot(&ts[0], &tm[0]), dot(&ts[0], &tm[1]), dot(&ts[1], &tm[1]))
+    (
+        dot(&ts[0], &tm[0]),
+        dot(&ts[0], &tm[1]),
+        dot(&ts[1], &tm[1]),
+    )
 }
 
 /// Screen-space gradients of one Gaussian, summed over every pixel it touched.
@@ -308,9 +342,8 @@ pub(crate) fn project_backward<T: Real>(
     let half = T::c(0.5);
     let g2 = [[d_ca, half * d_cb], [half * d_cb, d_cc]];
     // dΣ = Tᵀ G2 T
-    let g2t: [[T; 3]; 2] = std::array::from_fn(|r| {
-        std::array::from_fn(|c| g2[r][0] * tm[0][c] + g2[r][1] * tm[1][c])
-    });
+    let g2t: [[T; 3]; 2] =
+        std::array::from_fn(|r| std::array::from_fn(|c| g2[r][0] * tm[0][c] + g2[r][1] * tm[1][c]));
     let d_sig: M3<T> = std::array::from_fn(|a| {
         std::array::from_fn(|b| tm[0][a] * g2t[0][b] + tm[1][a] * g2t[1][b])
     });
@@ -321,7 +354,8 @@ pub(crate) fn project_backward<T: Real>(
         })
     });
     // dJ = dT Wᵀ (only the four non-zero entries of J matter).
-    let dj = |r: usize, k: usize| d_tm[r][0] * w[k][0] + d_tm[r][1] * w[k][1] + d_tm[r][2] * w[k][2];
+    let dj =
+        |r: usize, k: usize| d_tm[r][0] * w[k][0] + d_tm[r][1] * w[k][1] + d_tm[r][2] * w[k][2];
     let (dj00, dj02, dj11, dj12) = (dj(0, 0), dj(0, 2), dj(1, 1), dj(1, 2));
     let iz2 = inv_z * inv_z;
     let mut d_t = [zero; 3];
@@ -363,12 +397,14 @@ pub(crate) fn project_backward<T: Real>(
     let dq = [
         two * (-qz * gr[0][1] + qy * gr[0][2] + qz * gr[1][0] - qx * gr[1][2] - qy * gr[2][0]
             + qx * gr[2][1]),
-        two * (qy * gr[0][1] + qz * gr[0][2] + qy * gr[1][0] - two * qx * gr[1][1]
-            - qw * gr[1][2]
+        two * (qy * gr[0][1] + qz * gr[0][2] + qy * gr[1][0] - two * qx * gr[1][1] - qw * gr[1][2]
             + qz * gr[2][0]
             + qw * gr[2][1]
             - two * qx * gr[2][2]),
-        two * (-two * qy * gr[0][0] + qx * gr[0][1] + qw * gr[0][2] + qx * gr[1][0]
+        two * (-two * qy * gr[0][0]
+            + qx * gr[0][1]
+            + qw * gr[0][2]
+            + qx * gr[1][0]
             + qz * gr[1][2]
             - qw * gr[2][0]
             + qz * gr[2][1]
@@ -383,5 +419,11 @@ pub(crate) fn project_backward<T: Real>(
     let qd = q[0] * dq[0] + q[1] * dq[1] + q[2] * dq[2] + q[3] * dq[3];
     let d_rot: [T; 4] = std::array::from_fn(|k| (dq[k] - q[k] * qd) / qn);
 
-    ParamGrad { mean: d_mean, log_scale: d_log_scale, rotation: d_rot, opacity_logit: d_logit, dc: d_dc }
+    ParamGrad {
+        mean: d_mean,
+        log_scale: d_log_scale,
+        rotation: d_rot,
+        opacity_logit: d_logit,
+        dc: d_dc,
+    }
 }

@@ -77,17 +77,17 @@ pub fn basis_grad<T: Real>(degree: u8, d: [T; 3]) -> [[T; 3]; 16] {
         let two = c(2.0);
         g[4] = [c(C2[0]) * y, c(C2[0]) * x, o];
         g[5] = [o, c(C2[1]) * z, c(C2[1]) * y];
-        g[6] = [-two * c(C2[2]) * x, -two * c(C2[2]) * y, c(4.0) * c(C2[2]) * z];
+        g[6] = [
+            -two * c(C2[2]) * x,
+            -two * c(C2[2]) * y,
+            c(4.0) * c(C2[2]) * z,
+        ];
         g[7] = [c(C2[3]) * z, o, c(C2[3]) * x];
         g[8] = [two * c(C2[4]) * x, -two * c(C2[4]) * y, o];
         if degree >= 3 {
             let three = c(3.0);
             let four = c(4.0);
-            g[9] = [
-                c(C3[0]) * c(6.0) * x * y,
-                c(C3[0]) * three * (xx - yy),
-                o,
-            ];
+            g[9] = [c(C3[0]) * c(6.0) * x * y, c(C3[0]) * three * (xx - yy), o];
             g[10] = [c(C3[1]) * y * z, c(C3[1]) * x * z, c(C3[1]) * x * y];
             g[11] = [
                 -two * c(C3[2]) * x * y,
@@ -104,12 +104,12 @@ pub fn basis_grad<T: Real>(degree: u8, d: [T; 3]) -> [[T; 3]; 16] {
                 -two * c(C3[4]) * x * y,
                 c(C3[4]) * c(8.0) * x * z,
             ];
-            g[14] = [two * c(C3[5]) * x * z, -two * c(C3[5]) * y * z, c(C3[5]) * (xx - yy)];
-            g[15] = [
-                c(C3[6]) * three * (xx - yy),
-                -c(C3[6]) * c(6.0) * x * y,
-                o,
+            g[14] = [
+                two * c(C3[5]) * x * z,
+                -two * c(C3[5]) * y * z,
+                c(C3[5]) * (xx - yy),
             ];
+            g[15] = [c(C3[6]) * three * (xx - yy), -c(C3[6]) * c(6.0) * x * y, o];
         }
     }
     g
@@ -132,7 +132,11 @@ mod tests {
             let (bp, bm) = (basis(3, p), basis(3, m));
             for k in 0..16 {
                 let fd = (bp[k] - bm[k]) / (2.0 * h);
-                assert!((fd - g[k][axis]).abs() < 1e-7, "k={k} axis={axis} fd={fd} an={}", g[k][axis]);
+                assert!(
+                    (fd - g[k][axis]).abs() < 1e-7,
+                    "k={k} axis={axis} fd={fd} an={}",
+                    g[k][axis]
+                );
             }
         }
     }

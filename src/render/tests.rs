@@ -7,7 +7,17 @@ use glam::{Mat3, Vec3};
 
 /// A camera at `eye` looking at the origin-facing direction +z (identity rotation).
 fn front_camera(w: u32, h: u32, f: f32, eye_z: f32) -> Camera {
-    Camera::from_pose("front", w, h, f, f, w as f32 / 2.0, h as f32 / 2.0, Mat3::IDENTITY, Vec3::new(0.0, 0.0, eye_z))
+    Camera::from_pose(
+        "front",
+        w,
+        h,
+        f,
+        f,
+        w as f32 / 2.0,
+        h as f32 / 2.0,
+        Mat3::IDENTITY,
+        Vec3::new(0.0, 0.0, eye_z),
+    )
 }
 
 fn one_gaussian(mean: [f64; 3], scale: f64, opacity_logit: f64, dc: [f64; 3]) -> Gaussians<f64> {
@@ -33,10 +43,17 @@ fn single_gaussian_matches_hand_computation() {
     let cam = front_camera(32, 32, 100.0, -10.0);
     let dc = [1.0, 0.0, -0.5];
     let g = one_gaussian([0.0, 0.0, 0.0], 0.1, 0.5, dc);
-    let opts = RenderOptions { background: [0.2, 0.4, 0.6], ..Default::default() };
+    let opts = RenderOptions {
+        background: [0.2, 0.4, 0.6],
+        ..Default::default()
+    };
     let r = render(&g, &cam, &opts).unwrap();
     let o = sigmoid(0.5);
-    let col: Vec<f64> = dc.iter().map(|d| (0.282_094_791_773_878_1 * d + 0.5f64).max(0.0)).collect();
+    let col: Vec<f64> = dc
+        .iter()
+        .map(|d| (0.282_094_791_773_878_1 * d + 0.5f64).max(0.0))
+        .collect();
+    #[allow(clippy::needless_range_loop)]
     for (py, px) in [(15usize, 15usize), (16, 16), (15, 17), (20, 15), (13, 19)] {
         let dx = px as f64 + 0.5 - 16.0;
         let dy = py as f64 + 0.5 - 16.0;
@@ -48,7 +65,10 @@ fn single_gaussian_matches_hand_computation() {
         for ch in 0..3 {
             let want = col[ch] * alpha + (1.0 - alpha) * opts.background[ch] as f64;
             let got = r.image[py * 32 + px][ch];
-            assert!((got - want).abs() < 1e-9, "pixel ({px},{py}) ch {ch}: {got} vs {want}");
+            assert!(
+                (got - want).abs() < 1e-9,
+                "pixel ({px},{py}) ch {ch}: {got} vs {want}"
+            );
         }
     }
     // Far from the Gaussian only the background remains.
@@ -67,7 +87,15 @@ fn two_overlapping_gaussians_composite_front_to_back() {
     g.rotations.push(back.rotations[0]);
     g.opacity_logits.insert(0, back.opacity_logits[0]);
     g.sh_dc.insert(0, back.sh_dc[0]);
-    let r = render(&g, &cam, &RenderOptions { blend_weights: true, ..Default::default() }).unwrap();
+    let r = render(
+        &g,
+        &cam,
+        &RenderOptions {
+            blend_weights: true,
+            ..Default::default()
+        },
+    )
+    .unwrap();
     let (px, py) = (16usize, 16usize);
     let dx = px as f64 + 0.5 - 16.0;
     let s2_front = (100.0 * 0.1 / 11.0f64).powi(2) + 0.3; // wait: front is at depth 11? see below
@@ -110,17 +138,26 @@ fn bad_camera_and_gradient_size_are_typed_errors() {
     let g = one_gaussian([0.0; 3], 0.1, 0.0, [0.0; 3]);
     let mut cam = front_camera(32, 32, 100.0, -10.0);
     cam.fx = f32::NAN;
-    assert!(matches!(render(&g, &cam, &RenderOptions::default()), Err(RenderError::BadCamera { .. })));
+    assert!(matches!(
+        render(&g, &cam, &RenderOptions::default()),
+        Err(RenderError::BadCamera { .. })
+    ));
     let cam = front_camera(32, 32, 100.0, -10.0);
     let r = render(&g, &cam, &RenderOptions::default()).unwrap();
-    assert!(matches!(backward(&g, &r, &[[0.0; 3]; 3]), Err(RenderError::GradientSize { .. })));
+    assert!(matches!(
+        backward(&g, &r, &[[0.0; 3]; 3]),
+        Err(RenderError::GradientSize { .. })
+    ));
 }
 
 /// A small deterministic random generator (tests must not depend on a crate's RNG stream).
 struct Lcg(u64);
 impl Lcg {
     fn next(&mut self) -> f64 {
-        self.0 = self.0.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
         (self.0 >> 11) as f64 / (1u64 << 53) as f64
     }
     fn range(&mut self, a: f64, b: f64) -> f64 {
@@ -130,14 +167,34 @@ impl Lcg {
 
 /// A random scene of `n` anisotropic, rotated Gaussians in front of a camera at the origin.
 fn random_scene(rng: &mut Lcg, n: usize, sh_degree: u8) -> Gaussians<f64> {
-    let rest = Gaussians::<f64>::rest_len_for(sh_degree);
-    let mut g = Gaussians { sh_degree, ..Default::default() };
+    let rest = crate::scene::rest_len_for(sh_degree);
+    let mut g = Gaussians {
+        sh_degree,
+        ..Default::default()
+    };
     for _ in 0..n {
-        g.means.push([rng.range(-0.6, 0.6), rng.range(-0.6, 0.6), rng.range(3.0, 5.0)]);
-        g.log_scales.push([rng.range(-2.6, -1.6), rng.range(-2.6, -1.6), rng.range(-2.6, -1.6)]);
-        g.rotations.push([rng.range(0.3, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0)]);
+        g.means.push([
+            rng.range(-0.6, 0.6),
+            rng.range(-0.6, 0.6),
+            rng.range(3.0, 5.0),
+        ]);
+        g.log_scales.push([
+            rng.range(-2.6, -1.6),
+            rng.range(-2.6, -1.6),
+            rng.range(-2.6, -1.6),
+        ]);
+        g.rotations.push([
+            rng.range(0.3, 1.0),
+            rng.range(-1.0, 1.0),
+            rng.range(-1.0, 1.0),
+            rng.range(-1.0, 1.0),
+        ]);
         g.opacity_logits.push(rng.range(-1.5, 1.5));
-        g.sh_dc.push([rng.range(-1.0, 1.5), rng.range(-1.0, 1.5), rng.range(-1.0, 1.5)]);
+        g.sh_dc.push([
+            rng.range(-1.0, 1.5),
+            rng.range(-1.0, 1.5),
+            rng.range(-1.0, 1.5),
+        ]);
         for _ in 0..rest {
             g.sh_rest.push(rng.range(-0.3, 0.3));
         }
@@ -148,13 +205,27 @@ fn random_scene(rng: &mut Lcg, n: usize, sh_degree: u8) -> Gaussians<f64> {
 fn fd_camera() -> Camera {
     // Slightly rotated camera so that every world axis mixes into the image.
     let rot = Mat3::from_euler(glam::EulerRot::XYZ, 0.1, -0.15, 0.05);
-    Camera::from_pose("fd", 40, 36, 45.0, 47.0, 20.3, 17.6, rot, Vec3::new(0.05, -0.04, 0.0))
+    Camera::from_pose(
+        "fd",
+        40,
+        36,
+        45.0,
+        47.0,
+        20.3,
+        17.6,
+        rot,
+        Vec3::new(0.05, -0.04, 0.0),
+    )
 }
 
 /// L = Σ_p w_p · image_p with fixed random weights.
 fn loss(g: &Gaussians<f64>, cam: &Camera, opts: &RenderOptions, w: &[[f64; 3]]) -> f64 {
     let r = render(g, cam, opts).unwrap();
-    r.image.iter().zip(w).map(|(p, q)| p[0] * q[0] + p[1] * q[1] + p[2] * q[2]).sum()
+    r.image
+        .iter()
+        .zip(w)
+        .map(|(p, q)| p[0] * q[0] + p[1] * q[1] + p[2] * q[2])
+        .sum()
 }
 
 /// Compares every analytic gradient with a central finite difference (h = 1e-6, f64).
@@ -168,11 +239,24 @@ fn check_gradients(seed: u64, n: usize, sh_degree: u8) {
 fn check_scene_gradients(rng: &mut Lcg, g: Gaussians<f64>) {
     let n = g.len();
     let cam = fd_camera();
-    let opts = RenderOptions { background: [0.3, 0.1, 0.7], ..Default::default() };
-    let w: Vec<[f64; 3]> =
-        (0..cam.width * cam.height).map(|_| [rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0)]).collect();
+    let opts = RenderOptions {
+        background: [0.3, 0.1, 0.7],
+        ..Default::default()
+    };
+    let w: Vec<[f64; 3]> = (0..cam.width * cam.height)
+        .map(|_| {
+            [
+                rng.range(-1.0, 1.0),
+                rng.range(-1.0, 1.0),
+                rng.range(-1.0, 1.0),
+            ]
+        })
+        .collect();
     let r = render(&g, &cam, &opts).unwrap();
-    assert_eq!(r.stats.visible, n, "every test Gaussian should be on screen");
+    assert_eq!(
+        r.stats.visible, n,
+        "every test Gaussian should be on screen"
+    );
     let grads = backward(&g, &r, &w).unwrap().params;
 
     let h = 1e-6;
@@ -191,20 +275,41 @@ fn check_scene_gradients(rng: &mut Lcg, g: Gaussians<f64>) {
     };
     for i in 0..n {
         for a in 0..3 {
-            check(format!("mean[{i}][{a}]"), grads.means[i][a], &|s, d| s.means[i][a] += d);
-            check(format!("log_scale[{i}][{a}]"), grads.log_scales[i][a], &|s, d| s.log_scales[i][a] += d);
-            check(format!("dc[{i}][{a}]"), grads.sh_dc[i][a], &|s, d| s.sh_dc[i][a] += d);
+            check(format!("mean[{i}][{a}]"), grads.means[i][a], &|s, d| {
+                s.means[i][a] += d
+            });
+            check(
+                format!("log_scale[{i}][{a}]"),
+                grads.log_scales[i][a],
+                &|s, d| s.log_scales[i][a] += d,
+            );
+            check(format!("dc[{i}][{a}]"), grads.sh_dc[i][a], &|s, d| {
+                s.sh_dc[i][a] += d
+            });
         }
         for a in 0..4 {
-            check(format!("rot[{i}][{a}]"), grads.rotations[i][a], &|s, d| s.rotations[i][a] += d);
+            check(format!("rot[{i}][{a}]"), grads.rotations[i][a], &|s, d| {
+                s.rotations[i][a] += d
+            });
         }
-        check(format!("opacity[{i}]"), grads.opacity_logits[i], &|s, d| s.opacity_logits[i] += d);
+        check(format!("opacity[{i}]"), grads.opacity_logits[i], &|s, d| {
+            s.opacity_logits[i] += d
+        });
         let rl = g.rest_len();
         for k in 0..rl {
-            check(format!("rest[{i}][{k}]"), grads.sh_rest[i * rl + k], &|s, d| s.sh_rest[i * rl + k] += d);
+            check(
+                format!("rest[{i}][{k}]"),
+                grads.sh_rest[i * rl + k],
+                &|s, d| s.sh_rest[i * rl + k] += d,
+            );
         }
     }
-    assert!(fails.is_empty(), "{} of {checked} gradients disagree:\n{}", fails.len(), fails.join("\n"));
+    assert!(
+        fails.is_empty(),
+        "{} of {checked} gradients disagree:\n{}",
+        fails.len(),
+        fails.join("\n")
+    );
 }
 
 #[test]
@@ -259,7 +364,12 @@ fn forward_f32_agrees_with_f64() {
     let opts = RenderOptions::default();
     let a = render(&g64, &cam, &opts).unwrap();
     let b = render(&g32, &cam, &opts).unwrap();
-    let max = a.image.iter().zip(&b.image).flat_map(|(p, q)| (0..3).map(move |c| (p[c] - q[c] as f64).abs())).fold(0.0, f64::max);
+    let max = a
+        .image
+        .iter()
+        .zip(&b.image)
+        .flat_map(|(p, q)| (0..3).map(move |c| (p[c] - q[c] as f64).abs()))
+        .fold(0.0, f64::max);
     assert!(max < 1e-4, "f32 and f64 renders differ by {max}");
 }
 
@@ -268,7 +378,10 @@ fn blend_weights_agree_between_forward_and_backward() {
     let mut rng = Lcg(5);
     let g = random_scene(&mut rng, 12, 0);
     let cam = fd_camera();
-    let opts = RenderOptions { blend_weights: true, ..Default::default() };
+    let opts = RenderOptions {
+        blend_weights: true,
+        ..Default::default()
+    };
     let r = render(&g, &cam, &opts).unwrap();
     let zeros = vec![[0.0; 3]; r.image.len()];
     let b = backward(&g, &r, &zeros).unwrap();
@@ -277,12 +390,93 @@ fn blend_weights_agree_between_forward_and_backward() {
         assert!((x - y).abs() < 1e-9 * (1.0 + x.abs()), "{x} vs {y}");
     }
     // Σ_i weights + Σ_p T_final = number of pixels (coverage is conserved).
-    let total: f64 = f.iter().sum::<f64>() + r.state.final_t.iter().enumerate().filter(|(k, _)| {
-        let t = k / (TILE * TILE);
-        let [x0, y0, x1, y1] = r.state.tile_rect(t);
-        let l = k % (TILE * TILE);
-        let (lx, ly) = ((l % TILE) as u32, (l / TILE) as u32);
-        x0 + lx < x1 && y0 + ly < y1
-    }).map(|(_, t)| *t).sum::<f64>();
+    let total: f64 = f.iter().sum::<f64>()
+        + r.state
+            .final_t
+            .iter()
+            .enumerate()
+            .filter(|(k, _)| {
+                let t = k / (TILE * TILE);
+                let [x0, y0, x1, y1] = r.state.tile_rect(t);
+                let l = k % (TILE * TILE);
+                let (lx, ly) = ((l % TILE) as u32, (l / TILE) as u32);
+                x0 + lx < x1 && y0 + ly < y1
+            })
+            .map(|(_, t)| *t)
+            .sum::<f64>();
     assert!((total - r.image.len() as f64).abs() < 1e-6, "{total}");
+}
+
+/// Every pixel against every Gaussian in depth order, with no tiles, bounding boxes or spans.
+fn brute_force(g: &Gaussians<f64>, cam: &Camera, opts: &RenderOptions) -> Vec<[f64; 3]> {
+    use super::project::{Cam, project};
+    let c = Cam::<f64>::new(cam, opts.near);
+    let mut ps: Vec<_> = (0..g.len())
+        .filter_map(|i| project(g, i, &c, g.sh_degree))
+        .collect();
+    ps.sort_by(|a, b| a.tc[2].total_cmp(&b.tc[2]));
+    let mut out = Vec::new();
+    for py in 0..cam.height {
+        for px in 0..cam.width {
+            let (mut t, mut col) = (1.0, [0.0; 3]);
+            for p in &ps {
+                let dx = px as f64 + 0.5 - p.xy[0];
+                let dy = py as f64 + 0.5 - p.xy[1];
+                let [a, b, cc] = p.conic;
+                let sigma = 0.5 * (a * dx * dx + cc * dy * dy) + b * dx * dy;
+                let alpha = (p.opacity * (-sigma).exp()).min(ALPHA_MAX);
+                if alpha < ALPHA_MIN {
+                    continue;
+                }
+                if t * (1.0 - alpha) < T_MIN {
+                    break;
+                }
+                for (c, pc) in col.iter_mut().zip(p.color) {
+                    *c += pc * alpha * t;
+                }
+                t *= 1.0 - alpha;
+            }
+            out.push(std::array::from_fn(|ch| {
+                col[ch] + t * opts.background[ch] as f64
+            }));
+        }
+    }
+    out
+}
+
+#[test]
+fn tiled_render_equals_brute_force() {
+    // Elongated, rotated Gaussians of all sizes across a non-multiple-of-16 image, so that
+    // footprints cross tile borders diagonally and the per-band tile culling is exercised.
+    let mut rng = Lcg(21);
+    let mut g = random_scene(&mut rng, 300, 1);
+    for (i, s) in g.log_scales.iter_mut().enumerate() {
+        let k = (i % 5) as f64;
+        *s = [-3.5 + 0.5 * k, -4.5 + rng.range(0.0, 1.0), -1.2 - 0.4 * k];
+    }
+    let cam = Camera::from_pose(
+        "wide",
+        83,
+        61,
+        60.0,
+        60.0,
+        41.0,
+        30.0,
+        Mat3::from_euler(glam::EulerRot::XYZ, 0.2, 0.1, 0.3),
+        Vec3::new(0.0, 0.0, -0.5),
+    );
+    let opts = RenderOptions {
+        background: [0.1, 0.2, 0.3],
+        ..Default::default()
+    };
+    let r = render(&g, &cam, &opts).unwrap();
+    let want = brute_force(&g, &cam, &opts);
+    let mut max = 0.0f64;
+    for (a, b) in r.image.iter().zip(&want) {
+        for ch in 0..3 {
+            max = max.max((a[ch] - b[ch]).abs());
+        }
+    }
+    assert!(max < 1e-9, "tiled and brute-force renders differ by {max}");
+    assert!(r.stats.visible > 200);
 }

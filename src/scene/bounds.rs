@@ -21,12 +21,13 @@ impl Bounds {
 /// Exact bounds of all centres (`None` for an empty scene).
 pub fn full_bounds(g: &Gaussians) -> Option<Bounds> {
     let first = *g.means.first()?;
-    let mut b = Bounds { min: first, max: first };
+    let mut b = Bounds {
+        min: first,
+        max: first,
+    };
     for m in &g.means {
-        for a in 0..3 {
-            b.min[a] = b.min[a].min(m[a]);
-            b.max[a] = b.max[a].max(m[a]);
-        }
+        b.min = std::array::from_fn(|a| b.min[a].min(m[a]));
+        b.max = std::array::from_fn(|a| b.max[a].max(m[a]));
     }
     Some(b)
 }
@@ -37,7 +38,10 @@ pub fn robust_bounds(g: &Gaussians, q: f32) -> Option<Bounds> {
         return None;
     }
     let q = q.clamp(0.0, 0.5);
-    let mut b = Bounds { min: [0.0; 3], max: [0.0; 3] };
+    let mut b = Bounds {
+        min: [0.0; 3],
+        max: [0.0; 3],
+    };
     let mut axis: Vec<f32> = Vec::with_capacity(g.len());
     for a in 0..3 {
         axis.clear();

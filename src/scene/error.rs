@@ -18,7 +18,9 @@ pub enum SceneError {
     UnknownFormat(String),
     #[error("malformed header: {0}")]
     Header(String),
-    #[error("file is truncated: the header declares {expected} bytes of data but only {actual} are present")]
+    #[error(
+        "file is truncated: the header declares {expected} bytes of data but only {actual} are present"
+    )]
     Truncated { expected: u64, actual: u64 },
     #[error("sizes in the header overflow: {0}")]
     Overflow(String),
@@ -38,6 +40,12 @@ pub enum SceneError {
     TooManyGaussians { count: u64, max: usize },
     #[error("spherical-harmonics degree {0} is not supported (0 to 3 are)")]
     UnsupportedShDegree(usize),
+    #[error(
+        "{0} f_rest properties do not match a spherical-harmonics degree (0, 9, 24 or 45 expected)"
+    )]
+    ShRestCount(usize),
+    #[error("file is {size} bytes, more than the configured maximum of {max} bytes")]
+    FileTooLarge { size: u64, max: u64 },
     #[error("unsupported: {0}")]
     Unsupported(String),
     #[error("corrupt data: {0}")]

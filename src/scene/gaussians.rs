@@ -8,6 +8,11 @@ pub const fn sh_coeffs(degree: u8) -> usize {
     d * d
 }
 
+/// Number of `sh_rest` floats per Gaussian for a degree (0, 9, 24, 45).
+pub const fn rest_len_for(sh_degree: u8) -> usize {
+    (sh_coeffs(sh_degree) - 1) * 3
+}
+
 /// A 3D Gaussian Splatting scene, structure-of-arrays, every value f32.
 ///
 /// Conventions (those of the INRIA reference implementation):
@@ -36,12 +41,7 @@ pub struct Gaussians<T = f32> {
 impl<T: Copy> Gaussians<T> {
     /// Number of `sh_rest` floats per Gaussian in this scene.
     pub fn rest_len(&self) -> usize {
-        Self::rest_len_for(self.sh_degree)
-    }
-
-    /// Number of `sh_rest` floats per Gaussian for a degree (0, 9, 24, 45).
-    pub const fn rest_len_for(sh_degree: u8) -> usize {
-        (sh_coeffs(sh_degree) - 1) * 3
+        rest_len_for(self.sh_degree)
     }
 
     pub fn len(&self) -> usize {
@@ -73,6 +73,11 @@ impl<T: Copy> Gaussians<T> {
 }
 
 impl Gaussians {
+    /// Number of `sh_rest` floats per Gaussian for a degree (0, 9, 24, 45).
+    pub const fn rest_len_for(sh_degree: u8) -> usize {
+        rest_len_for(sh_degree)
+    }
+
     /// An empty scene of the given SH degree with room for `n` Gaussians.
     pub fn with_capacity(n: usize, sh_degree: u8) -> Self {
         Self {
@@ -133,7 +138,10 @@ impl Gaussians {
                 }
             }
             if self.rest_of(i).iter().any(|x| !x.is_finite()) {
-                return Err(SceneError::NonFinite { index: i, field: "f_rest" });
+                return Err(SceneError::NonFinite {
+                    index: i,
+                    field: "f_rest",
+                });
             }
             let q = self.rotations[i];
             if q.iter().map(|x| x * x).sum::<f32>() == 0.0 {
@@ -148,7 +156,7 @@ impl Gaussians {
 /// so that read → write → read is exact. Returns `None` for a zero or non-finite length.
 pub fn normalize_quat(q: [f32; 4]) -> Option<[f32; 4]> {
     let n2: f64 = q.iter().map(|&x| (x as f64) * (x as f64)).sum();
-    if !(n2 > 0.0) || !n2.is_finite() {
+    if n2.is_nan() || n2 <= 0.0 || !n2.is_finite() {
         return None;
     }
     if (n2 - 1.0).abs() <= 4.0 * f32::EPSILON as f64 {

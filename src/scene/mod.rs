@@ -1,7 +1,21 @@
+//! Scenes: the Gaussian model, the file formats people have (INRIA PLY, SuperSplat compressed
+//! PLY, antimatter15 `.splat`, Niantic `.spz`) and cameras (INRIA `cameras.json`, NeRF
+//! `transforms.json`, LLFF `poses_bounds.npy`, orbit views).
+
 mod error;
 mod gaussians;
+
 pub mod bounds;
 pub mod camera;
+pub mod compressed_ply;
+pub mod format;
+pub mod orbit;
+pub mod ply;
+pub mod splat;
+pub mod spz;
+pub mod synthetic;
+
 pub use camera::Camera;
 pub use error::SceneError;
-pub use gaussians::{Gaussians, SH_C0, logit, normalize_quat, sh_coeffs, sigmoid};
+pub use format::{Format, Limits, read_scene, read_scene_bytes, write_ply};
+pub use gaussians::{Gaussians, SH_C0, logit, normalize_quat, rest_len_for, sh_coeffs, sigmoid};
