@@ -12,7 +12,11 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 #[derive(Parser, Debug)]
-#[command(name = "splatmark", version, about = "Watermarking for 3D Gaussian Splatting assets")]
+#[command(
+    name = "splatmark",
+    version,
+    about = "Watermarking for 3D Gaussian Splatting assets"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -100,7 +104,10 @@ fn run(cli: Cli) -> Result<()> {
 }
 
 fn load(path: &Path, limits: &LimitArgs) -> Result<(crate::scene::Format, Gaussians)> {
-    let limits = Limits { max_gaussians: limits.max_gaussians, ..Limits::default() };
+    let limits = Limits {
+        max_gaussians: limits.max_gaussians,
+        ..Limits::default()
+    };
     let bytes = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
     let ext = path.extension().and_then(|e| e.to_str());
     read_scene_bytes_detect(&bytes, ext, &limits)
@@ -196,7 +203,13 @@ fn render_cmd(a: &RenderArgs) -> Result<()> {
 fn safe_name(name: &str) -> String {
     let s: String = name
         .chars()
-        .map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '_' { c } else { '_' })
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
+                c
+            } else {
+                '_'
+            }
+        })
         .take(64)
         .collect();
     if s.is_empty() { "view".into() } else { s }

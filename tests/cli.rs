@@ -13,13 +13,20 @@ fn data() -> Option<PathBuf> {
     if d.is_dir() {
         Some(d)
     } else {
-        eprintln!("SKIPPED: {} is missing, real-scene CLI tests not run", d.display());
+        eprintln!(
+            "SKIPPED: {} is missing, real-scene CLI tests not run",
+            d.display()
+        );
         None
     }
 }
 
 fn json(out: &std::process::Output) -> serde_json::Value {
-    assert!(out.status.success(), "stderr: {}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "stderr: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     serde_json::from_slice(&out.stdout).expect("stdout is JSON")
 }
 
@@ -30,8 +37,8 @@ fn coverage(png: &Path) -> (f64, [f64; 3]) {
     let lit = img.pixels().filter(|p| p.0.iter().any(|&v| v > 16)).count() as f64;
     let mut mean = [0.0; 3];
     for p in img.pixels() {
-        for c in 0..3 {
-            mean[c] += p.0[c] as f64 / n;
+        for (m, v) in mean.iter_mut().zip(p.0) {
+            *m += v as f64 / n;
         }
     }
     (lit / n, mean)
@@ -51,7 +58,10 @@ fn info_reports_format_count_and_sh_degree() {
         assert_eq!(v["sh_degree"], sh, "{file}");
         let min = v["bounds"]["min"].as_array().unwrap();
         let max = v["bounds"]["max"].as_array().unwrap();
-        assert!(min.iter().zip(max).all(|(a, b)| a.as_f64() < b.as_f64()), "{file}");
+        assert!(
+            min.iter().zip(max).all(|(a, b)| a.as_f64() < b.as_f64()),
+            "{file}"
+        );
     }
 }
 
@@ -70,7 +80,10 @@ fn udon_renders_through_its_own_cameras() {
         .status()
         .unwrap();
     assert!(status.success());
-    let mut pngs: Vec<_> = std::fs::read_dir(out.path()).unwrap().map(|e| e.unwrap().path()).collect();
+    let mut pngs: Vec<_> = std::fs::read_dir(out.path())
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
     pngs.sort();
     assert_eq!(pngs.len(), 4);
     for p in &pngs {
@@ -80,7 +93,11 @@ fn udon_renders_through_its_own_cameras() {
         let (lit, mean) = coverage(p);
         // The object is in view and it is the golden-brown noodle dish (red > green > blue).
         assert!(lit > 0.03, "{}: only {lit:.3} of pixels lit", p.display());
-        assert!(mean[0] > mean[1] && mean[1] > mean[2], "{}: mean colour {mean:?}", p.display());
+        assert!(
+            mean[0] > mean[1] && mean[1] > mean[2],
+            "{}: mean colour {mean:?}",
+            p.display()
+        );
     }
 }
 
@@ -98,12 +115,19 @@ fn donut_and_plant_render_through_orbit_views() {
             .status()
             .unwrap();
         assert!(status.success(), "{file}");
-        let pngs: Vec<_> = std::fs::read_dir(out.path()).unwrap().map(|e| e.unwrap().path()).collect();
+        let pngs: Vec<_> = std::fs::read_dir(out.path())
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .collect();
         assert_eq!(pngs.len(), 3, "{file}");
         for p in &pngs {
             let (lit, _) = coverage(p);
             // Orbit views frame the object: it covers a good part of the image but not all.
-            assert!(lit > 0.05 && lit < 0.9, "{file} {}: lit fraction {lit:.3}", p.display());
+            assert!(
+                lit > 0.05 && lit < 0.9,
+                "{file} {}: lit fraction {lit:.3}",
+                p.display()
+            );
         }
     }
 }
@@ -118,7 +142,13 @@ fn bad_input_fails_with_a_clear_message_and_writes_nothing() {
     )
     .unwrap();
     let out_dir = dir.path().join("out");
-    let out = bin().arg("render").arg(&bad).arg("--out").arg(&out_dir).output().unwrap();
+    let out = bin()
+        .arg("render")
+        .arg(&bad)
+        .arg("--out")
+        .arg(&out_dir)
+        .output()
+        .unwrap();
     assert!(!out.status.success());
     let msg = String::from_utf8_lossy(&out.stderr);
     assert!(msg.contains("truncated"), "{msg}");
