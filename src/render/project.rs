@@ -138,25 +138,9 @@ pub(crate) fn project<T: Real>(
         cam.fy * tc[1] * inv_z + cam.cy,
     ];
 
-    // 3D covariance Σ = M Mᵀ, M = R S.
-    let (q, _) = normalized(g.rotations[i]);
-    let r = quat_to_mat(q);
-    let s = g.log_scales[i].map(|v| v.exp());
-    let mm: M3<T> = std::array::from_fn(|a| std::array::from_fn(|b| r[a][b] * s[b]));
-    let sig = sym_mmt(&mm);
-
-    // T = J W, with J the Jacobian of the perspective projection (clamped in x/z, y/z).
-    let (txc, _) = clamp_ratio(tc[0], z, cam.lim_x);
-    let (tyc, _) = clamp_ratio(tc[1], z, cam.lim_y);
-    let j00 = cam.fx * inv_z;
-    let j02 = -cam.fx * txc * inv_z * inv_z;
-    let j11 = cam.fy * inv_z;
-    let j12 = -cam.fy * tyc * inv_z * inv_z;
-    let tm: [[T; 3]; 2] = [
-        std::array::from_fn(|c| j00 * w[0][c] + j02 * w[2][c]),
-        std::array::from_fn(|c| j11 * w[1][c] + j12 * w[2][c]),
-    ];
-    let (ca, cb, cc) = cov2d(&tm, &sig);
+    let cov = Cov3::new(g, i);
+    let jac = Jacobian::new(cam, tc);
+    let (ca, cb, cc) = cov2d(&jac.tm, &cov.sig);
     let lp = T::c(LOW_PASS);
     let cov2 = [ca + lp, cb, cc + lp];
     let det = cov2[0] * cov2[2] - cov2[1] * cov2[1];
@@ -221,6 +205,64 @@ fn sh_color<T: Real>(g: &Gaussians<T>, i: usize, cam: &Cam<T>, deg: u8) -> ([T; 
         }
     }
     (col, clamped)
+}
+
+/// The 3D covariance Σ = M Mᵀ, M = R S, of Gaussian `i` and the pieces its gradient needs.
+struct Cov3<T> {
+    /// Normalised quaternion and the length it had.
+    q: [T; 4],
+    qn: T,
+    r: M3<T>,
+    /// Per-axis standard deviations.
+    s: [T; 3],
+    mm: M3<T>,
+    sig: M3<T>,
+}
+
+impl<T: Real> Cov3<T> {
+    #[inline(always)]
+    fn new(g: &Gaussians<T>, i: usize) -> Self {
+        let (q, qn) = normalized(g.rotations[i]);
+        let r = quat_to_mat(q);
+        let s = g.log_scales[i].map(|v| v.exp());
+        let mm: M3<T> = std::array::from_fn(|a| std::array::from_fn(|b| r[a][b] * s[b]));
+        let sig = sym_mmt(&mm);
+        Self {
+            q,
+            qn,
+            r,
+            s,
+            mm,
+            sig,
+        }
+    }
+}
+
+/// T = J W for a camera-space centre, J the Jacobian of the perspective projection with x/z and
+/// y/z clamped to the guarded field of view (`sx`, `sy`: the sign of the clamp, if any).
+struct Jacobian<T> {
+    tm: [[T; 3]; 2],
+    sx: Option<T>,
+    sy: Option<T>,
+}
+
+impl<T: Real> Jacobian<T> {
+    #[inline(always)]
+    fn new(cam: &Cam<T>, tc: [T; 3]) -> Self {
+        let w = &cam.w;
+        let inv_z = T::one() / tc[2];
+        let (txc, sx) = clamp_ratio(tc[0], tc[2], cam.lim_x);
+        let (tyc, sy) = clamp_ratio(tc[1], tc[2], cam.lim_y);
+        let j00 = cam.fx * inv_z;
+        let j02 = -cam.fx * txc * inv_z * inv_z;
+        let j11 = cam.fy * inv_z;
+        let j12 = -cam.fy * tyc * inv_z * inv_z;
+        let tm = [
+            std::array::from_fn(|c| j00 * w[0][c] + j02 * w[2][c]),
+            std::array::from_fn(|c| j11 * w[1][c] + j12 * w[2][c]),
+        ];
+        Self { tm, sx, sy }
+    }
 }
 
 /// M Mᵀ for a 3×3 M (symmetric result).
@@ -321,23 +363,17 @@ pub(crate) fn project_backward<T: Real>(
     let d_cc = (-cb * cb * ga + ca * cb * gb - ca * ca * gc) * id2;
 
     // Recompute the 3D covariance chain.
-    let (q, qn) = normalized(g.rotations[i]);
-    let r = quat_to_mat(q);
-    let s = g.log_scales[i].map(|v| v.exp());
-    let mm: M3<T> = std::array::from_fn(|a| std::array::from_fn(|b| r[a][b] * s[b]));
-    let sig = sym_mmt(&mm);
+    let Cov3 {
+        q,
+        qn,
+        r,
+        s,
+        mm,
+        sig,
+    } = Cov3::new(g, i);
     let [tx, ty, z] = p.tc;
     let inv_z = one / z;
-    let (txc, sx) = clamp_ratio(tx, z, cam.lim_x);
-    let (tyc, sy) = clamp_ratio(ty, z, cam.lim_y);
-    let j00 = cam.fx * inv_z;
-    let j02 = -cam.fx * txc * inv_z * inv_z;
-    let j11 = cam.fy * inv_z;
-    let j12 = -cam.fy * tyc * inv_z * inv_z;
-    let tm: [[T; 3]; 2] = [
-        std::array::from_fn(|c| j00 * w[0][c] + j02 * w[2][c]),
-        std::array::from_fn(|c| j11 * w[1][c] + j12 * w[2][c]),
-    ];
+    let Jacobian { tm, sx, sy } = Jacobian::new(cam, p.tc);
     // Symmetric gradient of Σ′ (off-diagonal split between the two entries).
     let half = T::c(0.5);
     let g2 = [[d_ca, half * d_cb], [half * d_cb, d_cc]];
