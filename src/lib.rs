@@ -10,3 +10,4 @@
 pub mod cli;
 pub mod render;
 pub mod scene;
+pub mod verify;
