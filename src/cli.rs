@@ -5,7 +5,7 @@ use crate::scene::bounds::{full_bounds, robust_bounds};
 use crate::scene::camera::read_cameras;
 use crate::scene::format::read_scene_bytes_detect;
 use crate::scene::orbit::{OrbitOptions, UpAxis, orbit_cameras};
-use crate::scene::{Camera, Gaussians, Limits};
+use crate::scene::{Camera, Gaussians, Limits, write_ply};
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
 use std::path::{Path, PathBuf};
@@ -33,6 +33,17 @@ enum Command {
     },
     /// Render a scene through its cameras or orbit views to PNG files.
     Render(RenderArgs),
+    /// Convert any supported scene file to an INRIA binary PLY (opens in INRIA's viewer,
+    /// SuperSplat and Spark).
+    Convert {
+        /// Scene file (.ply, compressed .ply, .splat, .spz).
+        scene: PathBuf,
+        /// Output .ply file (written atomically: a temporary file renamed into place).
+        #[arg(long)]
+        out: PathBuf,
+        #[command(flatten)]
+        limits: LimitArgs,
+    },
 }
 
 #[derive(Args, Debug)]
@@ -100,7 +111,30 @@ fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Info { scene, limits } => info(&scene, &limits),
         Command::Render(args) => render_cmd(&args),
+        Command::Convert { scene, out, limits } => convert(&scene, &out, &limits),
     }
+}
+
+fn convert(path: &Path, out: &Path, limits: &LimitArgs) -> Result<()> {
+    let (format, g) = load(path, limits)?;
+    let dir = out
+        .parent()
+        .filter(|d| !d.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let mut tmp = tempfile::NamedTempFile::new_in(dir)
+        .with_context(|| format!("cannot create a file in {}", dir.display()))?;
+    write_ply(&g, std::io::BufWriter::new(tmp.as_file_mut()))?;
+    tmp.as_file().sync_all()?;
+    tmp.persist(out)
+        .with_context(|| format!("cannot write {}", out.display()))?;
+    eprintln!(
+        "{} ({format}, {} Gaussians, SH {}) → {}",
+        path.display(),
+        g.len(),
+        g.sh_degree,
+        out.display()
+    );
+    Ok(())
 }
 
 fn load(path: &Path, limits: &LimitArgs) -> Result<(crate::scene::Format, Gaussians)> {

@@ -160,3 +160,33 @@ fn bad_input_fails_with_a_clear_message_and_writes_nothing() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("unknown scene format"));
 }
+
+#[test]
+fn convert_writes_an_inria_ply_that_reads_back_exactly() {
+    let Some(d) = data() else { return };
+    let out = tempfile::tempdir().unwrap();
+    for (file, count) in [
+        ("udon/point_cloud.ply", 2153),
+        ("plant/plant.splat", 113_648),
+    ] {
+        let ply = out.path().join("converted.ply");
+        let status = bin()
+            .arg("convert")
+            .arg(d.join(file))
+            .arg("--out")
+            .arg(&ply)
+            .status()
+            .unwrap();
+        assert!(status.success(), "{file}");
+        let limits = splatmark::scene::Limits::default();
+        let original = splatmark::scene::read_scene(d.join(file), &limits).unwrap();
+        let converted = splatmark::scene::read_scene(&ply, &limits).unwrap();
+        assert_eq!(converted.len(), count);
+        assert!(
+            original == converted,
+            "{file}: converted scene differs from the original"
+        );
+        let v = json(&bin().arg("info").arg(&ply).output().unwrap());
+        assert_eq!(v["format"], "ply");
+    }
+}
