@@ -9,6 +9,7 @@
 
 pub mod attack;
 pub mod cli;
+pub mod decoder;
 pub mod render;
 pub mod scene;
 pub mod verify;

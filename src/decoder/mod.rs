@@ -1,0 +1,31 @@
+//! The watermark bit decoder D and the wavelet transform it reads through.
+//!
+//! The paper ("Where, What, Why", §3, decoupled finetuning) decodes with a frozen HiDDeN decoder
+//! D_ψ producing L logits (L ∈ {32, 48, 64}) from the **LL band of a 2-level DWT** of a rendered
+//! view, embeds only in that band, and regularises the multi-level DWT subbands with L1
+//! distances (L_wav^low on LL, L_wav^high on LH/HL/HH). This module holds:
+//!
+//! - [`dwt`](mod@dwt): multi-level orthonormal 2D Haar DWT and its inverse on burn tensors
+//!   `[B, C, H, W]`, differentiable, any size (edge padding to a multiple of 2^levels). Why Haar
+//!   rather than the baselines' `bior4.4`, and the exact band conventions, are in its docs.
+//! - [`model`]: [`HiddenDecoder`] (RGB image in [0, 1] → `[B, L]` logits through
+//!   [`decoder_input`] = centred LL band), [`HiddenEncoder`] (image-domain HiDDeN encoder used
+//!   only to pretrain the decoder), the Stable-Signature [`Whitening`] of the logits, their
+//!   configs, and burnpack save/load.
+//!
+//! Typical finetuning use (`embed::finetune`, planned): build the decoder from its config, load
+//! the pretrained weights, [`HiddenDecoder::frozen`], then per view
+//! `logits = decoder.forward(attack.apply(render)?)` on an autodiff device, BCE against the
+//! message bits, and `backward` to get ∂L/∂render for `render::backward`. The differentiable
+//! attacks of the EOT term live in [`crate::attack`] (`attack::diff`). A bit reads as 1 when its
+//! (whitened, if a [`Whitening`] is used) logit is > 0.
+
+pub mod dwt;
+pub mod model;
+
+pub use dwt::{Dwt, dwt, haar_level, idwt, inverse_haar_level, ll_band, ll_size, padded_size};
+pub use model::{
+    BATCH_NORM_EPS, ConvBnRelu, HiddenDecoder, HiddenDecoderConfig, HiddenEncoder,
+    HiddenEncoderConfig, WHITENING_EIGEN_FLOOR, Whitening, WhiteningError, decoder_input,
+    symmetric_eigen,
+};
