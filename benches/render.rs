@@ -1,7 +1,8 @@
 //! Rasterizer benchmarks: forward and forward + backward at 800×800 on synthetic scenes of 10k,
 //! 100k and 1M Gaussians, and on the real scenes in ../shared/data when present.
 //!
-//! Run: `cargo bench --bench render` (add `-- --quick` for fewer repetitions). Prints a Markdown
+//! Run: `cargo bench --bench render` (add `-- --quick` for fewer repetitions, and words such as
+//! `-- 100k donut "ply io"` to run only the benchmarks whose names contain them). Prints a Markdown
 //! table; figures are recorded in docs/BENCHMARKS.md.
 
 use splatmark::render::{RenderOptions, backward, render};
@@ -38,6 +39,9 @@ fn camera_for(radius: f32, width: u32, height: u32) -> Camera {
 }
 
 fn bench(name: &str, g: &Gaussians, cam: &Camera, reps: usize) {
+    if !selected(name) {
+        return;
+    }
     let opts = RenderOptions::default();
     let warm = render(g, cam, &opts).expect("render");
     let stats = warm.stats;
@@ -64,6 +68,15 @@ fn bench(name: &str, g: &Gaussians, cam: &Camera, reps: usize) {
         median(fwd),
         median(both)
     );
+}
+
+/// Benchmarks whose name contains one of the non-flag arguments (all when there are none).
+fn selected(name: &str) -> bool {
+    let filters: Vec<String> = std::env::args()
+        .skip(1)
+        .filter(|a| !a.starts_with("--"))
+        .collect();
+    filters.is_empty() || filters.iter().any(|f| name.contains(f.as_str()))
 }
 
 fn main() {
@@ -103,6 +116,9 @@ fn main() {
     }
 
     // Scene I/O: INRIA binary PLY of 1M SH3 Gaussians (236 MB), in memory.
+    if !selected("ply io") {
+        return;
+    }
     let g = synthetic::object_scene(1_000_000, 3, 7);
     let mut bytes = Vec::new();
     let t = Instant::now();
