@@ -10,6 +10,7 @@
 pub mod attack;
 pub mod cli;
 pub mod decoder;
+pub mod embed;
 pub mod render;
 pub mod scene;
 pub mod verify;

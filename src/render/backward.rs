@@ -15,6 +15,11 @@ use rayon::prelude::*;
 /// the scene (`params.means[i]` is ∂L/∂means[i], and so on), plus per-Gaussian blend weights.
 pub struct Gradients<T> {
     pub params: Gaussians<T>,
+    /// ∂L/∂c_i for the colour c_i that Gaussian i was composited with: the override colour when
+    /// [`super::RenderOptions::colors`] was set (then the SH gradients in `params` are zero),
+    /// else the SH colour after the clamp at 0. Equals Σ_p (∂L/∂pixel_p)·α_i·T_i per channel;
+    /// 0 for Gaussians not seen.
+    pub colors: Vec<[T; 3]>,
     /// Σ_p α_i·T_i over the pixels of this view (0 for Gaussians not seen).
     pub blend_weights: Vec<T>,
 }
@@ -70,13 +75,18 @@ pub fn backward<T: Real>(
             let i = s.id as usize;
             let p = project(g, i, &st.cam, st.sh_degree)
                 .expect("a Gaussian visible in the forward pass projects again");
+            // An override colour depends on no parameter: nothing flows into SH or the means.
+            let mut sg = *sg;
+            if st.color_override {
+                sg.color = [T::zero(); 3];
+            }
             project_backward(
                 g,
                 i,
                 &st.cam,
                 st.sh_degree,
                 &p,
-                sg,
+                &sg,
                 &mut rest_out[..rest_len],
             )
         })
@@ -94,6 +104,7 @@ pub fn backward<T: Real>(
         sh_degree: g.sh_degree,
     };
     let mut blend_weights = vec![T::zero(); n];
+    let mut colors = vec![z3; n];
     for (k, (s, pg)) in st.splats.iter().zip(grads).enumerate() {
         let i = s.id as usize;
         params.means[i] = pg.mean;
@@ -104,9 +115,11 @@ pub fn backward<T: Real>(
         params.sh_rest[i * rest_len..(i + 1) * rest_len]
             .copy_from_slice(&rest[k * stride..k * stride + rest_len]);
         blend_weights[i] = per_splat[k].1;
+        colors[i] = per_splat[k].0.color;
     }
     Ok(Gradients {
         params,
+        colors,
         blend_weights,
     })
 }

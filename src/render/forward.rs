@@ -187,6 +187,8 @@ pub struct Rendered<T> {
 pub(crate) struct State<T> {
     pub cam: Cam<T>,
     pub sh_degree: u8,
+    /// The colours came from [`RenderOptions::colors`], not from SH.
+    pub color_override: bool,
     pub n_gaussians: usize,
     pub background: [T; 3],
     /// Visible Gaussians in depth order.
@@ -225,12 +227,24 @@ pub fn render<T: Real>(
 ) -> Result<Rendered<T>, RenderError> {
     check_inputs(g, camera, opts)?;
     let cam = Cam::<T>::new(camera, opts.near);
-    let sh_degree = opts.sh_degree.map_or(g.sh_degree, |d| d.min(g.sh_degree));
+    let overrides = opts.colors.as_deref();
+    // With a colour override the SH colour is not used: evaluate only its cheap DC term.
+    let sh_degree = match overrides {
+        Some(_) => 0,
+        None => opts.sh_degree.map_or(g.sh_degree, |d| d.min(g.sh_degree)),
+    };
 
     let unsorted: Vec<Splat<T>> = (0..g.len())
         .into_par_iter()
         .with_min_len(1024)
-        .filter_map(|i| project(g, i, &cam, sh_degree).and_then(|p| Splat::new(i, &p, &cam)))
+        .filter_map(|i| {
+            let mut p = project(g, i, &cam, sh_degree)?;
+            if let Some(c) = overrides {
+                p.color = c[i].map(T::from_f32);
+                p.clamped = [false; 3];
+            }
+            Splat::new(i, &p, &cam)
+        })
         .collect();
     // Sort (depth, position) keys rather than the splats themselves: depths are positive, so
     // their f32 bit patterns order like the values; ties keep scene order.
@@ -261,6 +275,7 @@ pub fn render<T: Real>(
     let mut state = State {
         cam,
         sh_degree,
+        color_override: overrides.is_some(),
         n_gaussians: g.len(),
         background: opts.background.map(T::from_f32),
         splats,

@@ -7,7 +7,8 @@
 //! - Per pixel, Gaussians are composited front to back in order of camera-space depth with
 //!   α = min(0.99, o·e^(−σ)), σ = ½ dᵀ Σ′⁻¹ d; α < 1/255 is skipped; compositing stops before a
 //!   Gaussian would bring the transmittance T below 1e-4; the background fills the remaining T.
-//! - Colour from SH of degree 0–3 along the direction camera → Gaussian, + 0.5, clamped at 0.
+//! - Colour from SH of degree 0–3 along the direction camera → Gaussian, + 0.5, clamped at 0;
+//!   or, with [`RenderOptions::colors`], a given per-Gaussian colour used as is.
 //!
 //! Unlike INRIA, a Gaussian's screen footprint is the exact ellipse where α ≥ 1/255 (not a 3σ
 //! square), so the image does not depend on how the screen is cut into 16×16 tiles.
@@ -21,6 +22,7 @@ pub use backward::{Gradients, backward};
 pub use forward::{RenderStats, Rendered, render};
 
 use crate::scene::Camera;
+use std::sync::Arc;
 
 /// Tile edge in pixels.
 pub const TILE: usize = 16;
@@ -84,6 +86,13 @@ pub struct RenderOptions {
     pub sh_degree: Option<u8>,
     /// Also return Σ_p α_i T_i per Gaussian from the forward pass.
     pub blend_weights: bool,
+    /// Per-Gaussian colour override (one linear RGB triple per Gaussian of the scene): when set,
+    /// Gaussian i is composited with `colors[i]` as is (no SH, no +0.5, no clamp at 0) instead of
+    /// its SH colour, so pixel = Σ_i `colors[i]`·α_i·T_i + T_final·background. The backward pass
+    /// then gives ∂L/∂colors in [`Gradients::colors`] and zero SH gradients (the colour no longer
+    /// depends on SH or, through the view direction, on the means). This is 3D-GS's
+    /// `override_color` / `colors_precomp`, used by contribution pruning.
+    pub colors: Option<Arc<[[f32; 3]]>>,
 }
 
 impl Default for RenderOptions {
@@ -93,6 +102,7 @@ impl Default for RenderOptions {
             near: 0.01,
             sh_degree: None,
             blend_weights: false,
+            colors: None,
         }
     }
 }
@@ -155,6 +165,14 @@ pub(crate) fn check_inputs<T: Real>(
         return Err(RenderError::BadScene(
             "parameter arrays disagree in length or SH degree".into(),
         ));
+    }
+    if let Some(c) = &opts.colors
+        && c.len() != n
+    {
+        return Err(RenderError::BadScene(format!(
+            "colour override has {} entries for {n} Gaussians",
+            c.len()
+        )));
     }
     Ok(())
 }

@@ -237,12 +237,16 @@ fn check_gradients(seed: u64, n: usize, sh_degree: u8) {
 }
 
 fn check_scene_gradients(rng: &mut Lcg, g: Gaussians<f64>) {
-    let n = g.len();
-    let cam = fd_camera();
     let opts = RenderOptions {
         background: [0.3, 0.1, 0.7],
         ..Default::default()
     };
+    check_scene_gradients_with(rng, g, &opts);
+}
+
+fn check_scene_gradients_with(rng: &mut Lcg, g: Gaussians<f64>, opts: &RenderOptions) {
+    let n = g.len();
+    let cam = fd_camera();
     let w: Vec<[f64; 3]> = (0..cam.width * cam.height)
         .map(|_| {
             [
@@ -252,7 +256,7 @@ fn check_scene_gradients(rng: &mut Lcg, g: Gaussians<f64>) {
             ]
         })
         .collect();
-    let r = render(&g, &cam, &opts).unwrap();
+    let r = render(&g, &cam, opts).unwrap();
     assert_eq!(
         r.stats.visible, n,
         "every test Gaussian should be on screen"
@@ -267,7 +271,7 @@ fn check_scene_gradients(rng: &mut Lcg, g: Gaussians<f64>) {
         set(&mut gp, h);
         let mut gm = g.clone();
         set(&mut gm, -h);
-        let fd = (loss(&gp, &cam, &opts, &w) - loss(&gm, &cam, &opts, &w)) / (2.0 * h);
+        let fd = (loss(&gp, &cam, opts, &w) - loss(&gm, &cam, opts, &w)) / (2.0 * h);
         checked += 1;
         if (an - fd).abs() > 1e-5 + 1e-4 * fd.abs() {
             fails.push(format!("{name}: analytic {an:.8} fd {fd:.8}"));
@@ -479,4 +483,115 @@ fn tiled_render_equals_brute_force() {
     }
     assert!(max < 1e-9, "tiled and brute-force renders differ by {max}");
     assert!(r.stats.visible > 200);
+}
+
+/// A random override colour on a 1/64 grid in [−0.5, 1.5): exact in f32, and so are ± 1/64.
+fn dyadic_colors(rng: &mut Lcg, n: usize) -> Vec<[f32; 3]> {
+    (0..n)
+        .map(|_| std::array::from_fn(|_| (rng.range(-32.0, 96.0).floor() / 64.0) as f32))
+        .collect()
+}
+
+#[test]
+fn color_override_gradients_match_finite_differences() {
+    // SH degree 1 so that an SH colour would depend on the means; with the override nothing may
+    // flow into SH or through the view direction, and geometry gradients must still be right.
+    let mut rng = Lcg(31);
+    let g = random_scene(&mut rng, 8, 1);
+    let colors = dyadic_colors(&mut rng, g.len());
+    let opts = RenderOptions {
+        background: [0.3, 0.1, 0.7],
+        colors: Some(colors.clone().into()),
+        ..Default::default()
+    };
+    check_scene_gradients_with(&mut rng, g.clone(), &opts);
+
+    // ∂L/∂colour against central differences. L is linear in the colours and c ± 1/64 is exact
+    // in f32, so the difference quotient is exact up to the f64 rounding of L.
+    let cam = fd_camera();
+    let w: Vec<[f64; 3]> = (0..cam.width * cam.height)
+        .map(|_| std::array::from_fn(|_| rng.range(-1.0, 1.0)))
+        .collect();
+    let r = render(&g, &cam, &opts).unwrap();
+    let grads = backward(&g, &r, &w).unwrap();
+    assert!(grads.params.sh_dc.iter().flatten().all(|&v| v == 0.0));
+    assert!(grads.params.sh_rest.iter().all(|&v| v == 0.0));
+    let h = 1.0 / 64.0;
+    for i in 0..g.len() {
+        for ch in 0..3 {
+            let with = |d: f32| {
+                let mut c = colors.clone();
+                c[i][ch] += d;
+                let o = RenderOptions {
+                    colors: Some(c.into()),
+                    ..opts.clone()
+                };
+                loss(&g, &cam, &o, &w)
+            };
+            let fd = (with(h as f32) - with(-h as f32)) / (2.0 * h);
+            let an = grads.colors[i][ch];
+            assert!(
+                (an - fd).abs() < 1e-10 * (1.0 + fd.abs()),
+                "colour[{i}][{ch}]: analytic {an} fd {fd}"
+            );
+            assert!(an != 0.0, "every test Gaussian is on screen");
+        }
+    }
+    // The colour gradient is the blend-weight-weighted image gradient: with ∂L/∂pixel = 1 in
+    // every channel it equals Σ_p α_i T_i.
+    let ones = vec![[1.0; 3]; r.image.len()];
+    let gr = backward(&g, &r, &ones).unwrap();
+    for (c, b) in gr.colors.iter().zip(&gr.blend_weights) {
+        assert!(
+            c.iter().all(|v| (v - b).abs() < 1e-12 * (1.0 + b)),
+            "{c:?} vs {b}"
+        );
+    }
+}
+
+#[test]
+fn color_override_equals_sh0_colour_and_checks_its_length() {
+    // Colours in [0, 1] given as an override render exactly like SH degree 0 with
+    // dc = (c − 0.5)/SH_C0, whatever the scene's SH degree.
+    let mut rng = Lcg(32);
+    let g = random_scene(&mut rng, 40, 2);
+    let colors: Vec<[f32; 3]> = (0..g.len())
+        .map(|_| std::array::from_fn(|_| rng.range(0.0, 1.0) as f32))
+        .collect();
+    let mut g0 = g.clone();
+    g0.sh_degree = 0;
+    g0.sh_rest.clear();
+    for (dc, c) in g0.sh_dc.iter_mut().zip(&colors) {
+        *dc = c.map(|v| (v as f64 - 0.5) / 0.282_094_791_773_878_1);
+    }
+    let cam = fd_camera();
+    let base = RenderOptions {
+        background: [0.2, 0.5, 0.9],
+        blend_weights: true,
+        ..Default::default()
+    };
+    let a = render(
+        &g,
+        &cam,
+        &RenderOptions {
+            colors: Some(colors.into()),
+            ..base.clone()
+        },
+    )
+    .unwrap();
+    let b = render(&g0, &cam, &base).unwrap();
+    for (p, q) in a.image.iter().zip(&b.image) {
+        for ch in 0..3 {
+            assert!((p[ch] - q[ch]).abs() < 1e-12, "{p:?} vs {q:?}");
+        }
+    }
+    assert_eq!(a.blend_weights, b.blend_weights);
+    let bad = RenderOptions {
+        colors: Some(vec![[0.0; 3]; 3].into()),
+        ..Default::default()
+    };
+    assert!(matches!(
+        render(&g, &cam, &bad),
+        Err(RenderError::BadScene(_))
+    ));
 }
