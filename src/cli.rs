@@ -1,5 +1,11 @@
 //! The `splatmark` command line.
 
+use crate::decoder::WatermarkModel;
+use crate::decoder::data::{ImageSet, Split};
+use crate::decoder::eval::{self, EvalOptions};
+use crate::decoder::train::{
+    self, DeviceChoice, EncoderKind, RunOptions, TrainConfig, WhiteningChoice,
+};
 use crate::render::{RenderOptions, render, to_rgb8};
 use crate::scene::bounds::{full_bounds, robust_bounds};
 use crate::scene::camera::read_cameras;
@@ -44,6 +50,199 @@ enum Command {
         #[command(flatten)]
         limits: LimitArgs,
     },
+    /// Train or evaluate the watermark encoder/decoder.
+    Decoder {
+        #[command(subcommand)]
+        command: DecoderCommand,
+    },
+    /// Decode the message from images (several images of one asset: logits averaged), as JSON.
+    Decode(DecodeArgs),
+}
+
+#[derive(Subcommand, Debug)]
+enum DecoderCommand {
+    /// Train encoder + decoder jointly with the attack layers (HiDDeN recipe); resumable.
+    /// Progress on stderr; writes <OUT> (decoder), <OUT stem>.encoder.bpk and <OUT stem>.json.
+    Train(Box<TrainArgs>),
+    /// Evaluate trained weights on the held-out images under the real attacks; JSON on stdout.
+    Eval(EvalArgs),
+}
+
+#[derive(Args, Debug)]
+struct TrainArgs {
+    /// Image folder (.png/.jpg, recursive); ~10 % are held out by a hash of the relative path.
+    #[arg(long)]
+    images: PathBuf,
+    /// Message length.
+    #[arg(long)]
+    bits: usize,
+    /// Output decoder weights (e.g. weights/decoder-32.bpk); checkpoints go to <OUT>.ckpt/.
+    #[arg(long)]
+    out: PathBuf,
+    /// Continue from the newest checkpoint in <OUT>.ckpt/ (its settings; --steps may extend).
+    #[arg(long)]
+    resume: bool,
+    /// JSON file with a TrainConfig to start from (flags override it).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Optimisation steps.
+    #[arg(long)]
+    steps: Option<usize>,
+    /// Crops per step.
+    #[arg(long)]
+    batch_size: Option<usize>,
+    /// Crop side in pixels.
+    #[arg(long)]
+    crop: Option<usize>,
+    /// Adam learning rate.
+    #[arg(long)]
+    lr: Option<f64>,
+    /// Final learning rate as a fraction of --lr (cosine decay; 1 = constant).
+    #[arg(long)]
+    lr_min_fraction: Option<f64>,
+    /// Weight λ of the image loss λ·MSE(watermarked, cover).
+    #[arg(long)]
+    image_weight: Option<f64>,
+    /// Embedding strength (watermarked = cover + strength·residual).
+    #[arg(long)]
+    strength: Option<f64>,
+    /// Steps without attacks at the start.
+    #[arg(long)]
+    warmup_steps: Option<usize>,
+    /// Steps over which attacks ramp in after the warm-up.
+    #[arg(long)]
+    ramp_steps: Option<usize>,
+    /// Groups per batch, each with its own attack draw.
+    #[arg(long)]
+    attack_groups: Option<usize>,
+    /// Smallest random downscale of a crop's source window.
+    #[arg(long)]
+    min_scale: Option<f32>,
+    /// Seed of all random draws.
+    #[arg(long)]
+    seed: Option<u64>,
+    /// Checkpoint every N steps.
+    #[arg(long)]
+    checkpoint_every: Option<usize>,
+    /// Checkpoints kept.
+    #[arg(long)]
+    keep_checkpoints: Option<usize>,
+    /// Progress line every N steps.
+    #[arg(long)]
+    log_every: Option<usize>,
+    /// Training device.
+    #[arg(long, value_enum)]
+    device: Option<DeviceArg>,
+    /// Decoder hidden channels.
+    #[arg(long)]
+    decoder_channels: Option<usize>,
+    /// Decoder ConvBNReLU(C→C) blocks.
+    #[arg(long)]
+    decoder_depth: Option<usize>,
+    /// Encoder design: tiled (message → tiled pattern) or hidden (HiDDeN's).
+    #[arg(long, value_enum)]
+    encoder: Option<EncoderArg>,
+    /// Tiled encoder: message tile side (pixels at the encoder's resolution).
+    #[arg(long)]
+    encoder_tile: Option<usize>,
+    /// Encoder hidden channels.
+    #[arg(long)]
+    encoder_channels: Option<usize>,
+    /// Encoder blocks.
+    #[arg(long)]
+    encoder_blocks: Option<usize>,
+    /// The encoder runs at 1/2^levels resolution (residual upsampled bilinearly).
+    #[arg(long)]
+    encoder_levels: Option<usize>,
+    /// Whitening of the final decoder's logits.
+    #[arg(long, value_enum)]
+    whitening: Option<WhiteningArg>,
+    /// Skip the held-out evaluation at the end.
+    #[arg(long)]
+    no_final_eval: bool,
+    /// Held-out evaluation: short side of the images.
+    #[arg(long)]
+    eval_size: Option<u32>,
+    /// Held-out evaluation: messages per image.
+    #[arg(long)]
+    eval_repeats: Option<usize>,
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum DeviceArg {
+    Flex,
+    Wgpu,
+}
+
+impl From<DeviceArg> for DeviceChoice {
+    fn from(d: DeviceArg) -> Self {
+        match d {
+            DeviceArg::Flex => DeviceChoice::Flex,
+            DeviceArg::Wgpu => DeviceChoice::Wgpu,
+        }
+    }
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum EncoderArg {
+    Tiled,
+    Hidden,
+}
+
+impl From<EncoderArg> for EncoderKind {
+    fn from(e: EncoderArg) -> Self {
+        match e {
+            EncoderArg::Tiled => EncoderKind::Tiled,
+            EncoderArg::Hidden => EncoderKind::Hidden,
+        }
+    }
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum WhiteningArg {
+    Auto,
+    Always,
+    Never,
+}
+
+#[derive(Args, Debug)]
+struct WeightsArgs {
+    /// Message length.
+    #[arg(long)]
+    bits: usize,
+    /// Decoder weights (.bpk with its .json sidecar next to it); default: the shipped weights.
+    #[arg(long)]
+    weights: Option<PathBuf>,
+    /// Device for the networks.
+    #[arg(long, value_enum, default_value = "flex")]
+    device: DeviceArg,
+}
+
+#[derive(Args, Debug)]
+struct EvalArgs {
+    /// Image folder; only its held-out split is used.
+    #[arg(long)]
+    images: PathBuf,
+    #[command(flatten)]
+    weights: WeightsArgs,
+    /// Short side the images are resized to, then centre-cropped square.
+    #[arg(long, default_value_t = EvalOptions::default().size)]
+    size: u32,
+    /// Random messages embedded per image.
+    #[arg(long, default_value_t = EvalOptions::default().repeats)]
+    repeats: usize,
+    /// Seed of the messages and of the noise attack.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+}
+
+#[derive(Args, Debug)]
+struct DecodeArgs {
+    /// Images (renders of one asset); decoded at their own resolution, logits averaged.
+    #[arg(required = true)]
+    images: Vec<PathBuf>,
+    #[command(flatten)]
+    weights: WeightsArgs,
 }
 
 #[derive(Args, Debug)]
@@ -112,7 +311,126 @@ fn run(cli: Cli) -> Result<()> {
         Command::Info { scene, limits } => info(&scene, &limits),
         Command::Render(args) => render_cmd(&args),
         Command::Convert { scene, out, limits } => convert(&scene, &out, &limits),
+        Command::Decoder {
+            command: DecoderCommand::Train(args),
+        } => train_cmd(&args),
+        Command::Decoder {
+            command: DecoderCommand::Eval(args),
+        } => eval_cmd(&args),
+        Command::Decode(args) => decode_cmd(&args),
     }
+}
+
+fn train_cmd(a: &TrainArgs) -> Result<()> {
+    let base = match &a.config {
+        Some(p) => {
+            let text = std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?;
+            let mut c: TrainConfig = serde_json::from_slice(&text)
+                .with_context(|| format!("invalid training config {}", p.display()))?;
+            c.bits = a.bits;
+            c
+        }
+        None => TrainConfig::for_bits(a.bits),
+    };
+    let overrides = |c: &mut TrainConfig| {
+        macro_rules! set {
+            ($($field:ident),*) => {$(
+                if let Some(v) = a.$field {
+                    c.$field = v.into();
+                }
+            )*};
+        }
+        set!(
+            steps,
+            batch_size,
+            crop,
+            lr,
+            lr_min_fraction,
+            image_weight,
+            strength,
+            warmup_steps,
+            ramp_steps,
+            attack_groups,
+            min_scale,
+            seed,
+            checkpoint_every,
+            keep_checkpoints,
+            log_every,
+            device,
+            decoder_channels,
+            decoder_depth,
+            encoder,
+            encoder_tile,
+            encoder_channels,
+            encoder_blocks,
+            encoder_levels
+        );
+        if let Some(w) = a.whitening {
+            c.whitening = match w {
+                WhiteningArg::Auto => WhiteningChoice::Auto,
+                WhiteningArg::Always => WhiteningChoice::Always,
+                WhiteningArg::Never => WhiteningChoice::Never,
+            };
+        }
+        if a.no_final_eval {
+            c.final_eval = false;
+        }
+        if let Some(s) = a.eval_size {
+            c.eval.size = s;
+        }
+        if let Some(r) = a.eval_repeats {
+            c.eval.repeats = r;
+        }
+    };
+    let command = std::env::args()
+        .map(|s| if s.contains(' ') { format!("'{s}'") } else { s })
+        .collect::<Vec<_>>()
+        .join(" ");
+    let options = RunOptions {
+        resume: a.resume,
+        overrides: &overrides,
+        command: Some(command),
+    };
+    let sidecar = train::run(base, &a.images, &a.out, options, &mut std::io::stderr())?;
+    if let Some(eval) = sidecar.record.as_ref().and_then(|r| r.held_out.as_ref()) {
+        println!("{}", serde_json::to_string_pretty(eval)?);
+    }
+    Ok(())
+}
+
+fn load_model(w: &WeightsArgs) -> Result<(WatermarkModel, burn::tensor::Device)> {
+    let device = DeviceChoice::from(w.device).device();
+    let model = WatermarkModel::resolve(w.weights.as_deref(), w.bits, &device)?;
+    Ok((model, device))
+}
+
+fn eval_cmd(a: &EvalArgs) -> Result<()> {
+    let (model, device) = load_model(&a.weights)?;
+    let held_out = ImageSet::load(&a.images, Split::HeldOut)?;
+    let opts = EvalOptions {
+        size: a.size,
+        repeats: a.repeats,
+        seed: a.seed,
+        ..EvalOptions::default()
+    };
+    eprintln!(
+        "evaluating {} bits on {} held-out images ({}², {} messages each)…",
+        model.bits(),
+        held_out.len(),
+        opts.size,
+        opts.repeats
+    );
+    let report = eval::evaluate_on(&model, &held_out.images, &opts, &device)?;
+    println!("{}", serde_json::to_string_pretty(&report)?);
+    Ok(())
+}
+
+fn decode_cmd(a: &DecodeArgs) -> Result<()> {
+    let (model, device) = load_model(&a.weights)?;
+    let images = eval::read_images(&a.images)?;
+    let report = eval::decode_images(&model, &images, &device);
+    println!("{}", serde_json::to_string_pretty(&report)?);
+    Ok(())
 }
 
 fn convert(path: &Path, out: &Path, limits: &LimitArgs) -> Result<()> {

@@ -13,6 +13,17 @@
 //!   only to pretrain the decoder), the Stable-Signature [`Whitening`] of the logits, their
 //!   configs, and burnpack save/load.
 //!
+//! - [`data`](mod@data): the image folder, its deterministic held-out split (FNV-1a of the relative
+//!   path mod 10 == 0, ≈ 10 %), images in memory and random training crops.
+//! - [`encoder`](mod@encoder): the encoder trained with the decoder — HiDDeN's, or (default) a
+//!   variant that maps the message to a tiled spatial pattern and trains much faster.
+//! - [`train`](mod@train): joint encoder/decoder training with the differentiable attacks
+//!   (`splatmark decoder train`), resumable checkpoints, whitening decision, final artifact.
+//! - [`eval`](mod@eval): held-out evaluation under the real attacks (`splatmark decoder eval`)
+//!   and decoding of images with logit averaging (`splatmark decode`).
+//! - [`artifact`]: the artifact files (decoder + encoder burnpacks, JSON sidecar) and the
+//!   weights shipped in the binary (`weights/decoder-{32,48,64}.*`).
+//!
 //! Typical finetuning use (`embed::finetune`, planned): build the decoder from its config, load
 //! the pretrained weights, [`HiddenDecoder::frozen`], then per view
 //! `logits = decoder.forward(attack.apply(render)?)` on an autodiff device, BCE against the
@@ -20,8 +31,13 @@
 //! attacks of the EOT term live in [`crate::attack`] (`attack::diff`). A bit reads as 1 when its
 //! (whitened, if a [`Whitening`] is used) logit is > 0.
 
+pub mod artifact;
+pub mod data;
 pub mod dwt;
+pub mod encoder;
+pub mod eval;
 pub mod model;
+pub mod train;
 
 pub use dwt::{Dwt, dwt, haar_level, idwt, inverse_haar_level, ll_band, ll_size, padded_size};
 pub use model::{
@@ -29,3 +45,7 @@ pub use model::{
     HiddenEncoderConfig, WHITENING_EIGEN_FLOOR, Whitening, WhiteningError, decoder_input,
     symmetric_eigen,
 };
+
+pub use artifact::{Sidecar, WatermarkModel, WeightsError};
+pub use eval::{DecodeReport, EvalOptions, EvalReport};
+pub use train::{TrainConfig, TrainError, Trainer};
