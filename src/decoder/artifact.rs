@@ -1,0 +1,626 @@
+//! The trained watermark model as files: decoder weights, encoder weights and a JSON sidecar,
+//! and the weights shipped inside the binary.
+//!
+//! # Files
+//!
+//! For an artifact path `P` (e.g. `weights/decoder-32.bpk`):
+//!
+//! - `P`: the decoder's weights (burnpack, BatchNorm running statistics included);
+//! - `P` with extension `.encoder.bpk` (`weights/decoder-32.encoder.bpk`): the encoder's weights,
+//!   needed only by `decoder eval` (the decoder alone decodes);
+//! - `P` with extension `.json` (`weights/decoder-32.json`): the [`Sidecar`]: message length,
+//!   both architectures, embedding strength, the optional [`Whitening`] of the logits, the
+//!   training configuration and the training record (steps, wall time, final held-out metrics).
+//!
+//! All three are written atomically (temporary file + rename), the sidecar last.
+//!
+//! # Shipped weights
+//!
+//! `weights/decoder-{32,48,64}.{bpk,encoder.bpk,json}` are compiled into the binary with
+//! `include_bytes!` (burn loads burnpack records from memory), so `splatmark` needs no files next
+//! to it. Until a model is trained and committed, its three files are **empty placeholders**, and
+//! [`WatermarkModel::shipped`] answers [`WeightsError::NotShipped`]; other message lengths get
+//! [`WeightsError::NoShippedWeights`].
+
+use std::path::{Path, PathBuf};
+
+use burn::module::Module;
+use burn::store::{ModuleRecord, RecordError};
+use burn::tensor::{Bytes, Device, Tensor, TensorData};
+use serde::{Deserialize, Serialize};
+
+use super::encoder::Encoder;
+use super::eval::EvalReport;
+use super::model::{HiddenDecoder, HiddenDecoderConfig, Whitening};
+use super::train::{EncoderKind, LogEntry, TrainConfig};
+
+/// Sidecar format tag.
+pub const FORMAT: &str = "splatmark-decoder/1";
+
+/// Message lengths with shipped weights.
+pub const SHIPPED_BITS: [usize; 3] = [32, 48, 64];
+
+/// Why a model could not be loaded, saved or used.
+#[derive(Debug, thiserror::Error)]
+pub enum WeightsError {
+    /// The shipped weights for this length are still placeholders.
+    #[error(
+        "no trained weights are shipped for {bits} bits yet (weights/decoder-{bits}.* are placeholders); \
+         train them with `splatmark decoder train` or pass --weights FILE"
+    )]
+    NotShipped { bits: usize },
+    /// No shipped weights exist for this length at all.
+    #[error("splatmark ships weights for 32, 48 and 64 bits only, not {bits}; pass --weights FILE")]
+    NoShippedWeights { bits: usize },
+    /// A file could not be read or written.
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// A sidecar is not valid JSON of the expected shape.
+    #[error("{path}: invalid sidecar: {source}")]
+    Json {
+        path: PathBuf,
+        #[source]
+        source: serde_json::Error,
+    },
+    /// Weights do not load (corrupt, or another architecture).
+    #[error("{path}: {message}")]
+    Record { path: PathBuf, message: String },
+    /// The sidecar and the request disagree.
+    #[error("{0}")]
+    Mismatch(String),
+    /// Evaluation needs the encoder, and the artifact has none.
+    #[error("{0}: no encoder weights next to the decoder (needed to embed messages)")]
+    NoEncoder(PathBuf),
+    /// An image could not be read.
+    #[error("cannot read image {path}: {source}")]
+    Image {
+        path: PathBuf,
+        #[source]
+        source: image::ImageError,
+    },
+    /// An attack failed.
+    #[error("attack {name}: {message}")]
+    Attack { name: String, message: String },
+}
+
+/// Decoder architecture in the sidecar.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DecoderArch {
+    pub channels: usize,
+    pub depth: usize,
+    pub dwt_levels: usize,
+}
+
+/// Encoder architecture in the sidecar.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EncoderArch {
+    /// Design (`hidden` or `tiled`).
+    pub kind: EncoderKind,
+    pub channels: usize,
+    pub blocks: usize,
+    /// Message tile side of the tiled encoder.
+    #[serde(default)]
+    pub tile: usize,
+    /// The encoder runs on the 2^levels-downsampled image ([`encoder_residual`]).
+    #[serde(default)]
+    pub levels: usize,
+}
+
+/// The encoder's residual for images `[B, 3, H, W]` in [0, 1] and messages `[B, L]`, computed at
+/// 1/2^`levels` resolution: the encoder sees the block means of 2^levels × 2^levels blocks (the
+/// Haar LL band, scaled back to image range) and its residual is resized back to H × W
+/// (bilinear), so it is smooth rather than blocky. The decoder reads only that LL band anyway;
+/// running the encoder at that resolution makes it 4^levels times cheaper. `levels = 0` is the
+/// plain full-resolution [`Encoder::residual`].
+pub fn encoder_residual(
+    encoder: &Encoder,
+    image: Tensor<4>,
+    message: Tensor<2>,
+    levels: usize,
+) -> Tensor<4> {
+    if levels == 0 {
+        return encoder.residual(image, message);
+    }
+    let [_, _, h, w] = image.dims();
+    let f = 1usize << levels;
+    let small = super::dwt::ll_band(image, levels).div_scalar(f as f64);
+    let r = encoder.residual(small, message);
+    let [_, _, sh, sw] = r.dims();
+    let up = burn::tensor::module::interpolate(
+        r,
+        burn::tensor::ops::InterpolateOptions::new(burn::tensor::ops::InterpolateMode::Bilinear)
+            .with_align_corners(false)
+            .with_output_size([sh * f, sw * f]),
+    );
+    if (sh * f, sw * f) == (h, w) {
+        up
+    } else {
+        up.narrow(2, 0, h).narrow(3, 0, w)
+    }
+}
+
+/// Whether the whitening helped, as measured at the end of training.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct WhiteningReport {
+    /// Whether it was kept.
+    pub applied: bool,
+    /// Unmarked held-out crops decoded.
+    pub unmarked_samples: usize,
+    /// Mean over bits of |2·P(bit = 1) − 1| on unmarked crops, raw logits.
+    pub bias_raw: f64,
+    /// The same with whitened logits.
+    pub bias_whitened: f64,
+    /// Watermarked held-out crops decoded (clean and attacked).
+    pub marked_samples: usize,
+    /// Their bit accuracy, raw logits.
+    pub marked_accuracy_raw: f64,
+    /// Their bit accuracy, whitened logits.
+    pub marked_accuracy_whitened: f64,
+}
+
+impl WhiteningReport {
+    /// The rule of [`super::train::WhiteningChoice::Auto`]: lower bias, and at most 0.5
+    /// percentage points of marked accuracy lost.
+    pub fn helps(&self) -> bool {
+        self.bias_whitened < self.bias_raw
+            && self.marked_accuracy_whitened >= self.marked_accuracy_raw - 0.005
+    }
+
+    /// One-line summary.
+    pub fn summary(&self) -> String {
+        format!(
+            "unmarked bit bias {:.3} → {:.3}, marked bit accuracy {:.4} → {:.4}",
+            self.bias_raw,
+            self.bias_whitened,
+            self.marked_accuracy_raw,
+            self.marked_accuracy_whitened
+        )
+    }
+}
+
+/// How the artifact was trained.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainingRecord {
+    /// Optimisation steps done.
+    pub steps: usize,
+    /// Training wall time, summed over resumed sessions (seconds; evaluation excluded).
+    pub wall_s: f64,
+    /// Throughput of the last logging window.
+    pub images_per_s: Option<f64>,
+    /// The last progress line.
+    pub final_log: Option<LogEntry>,
+    /// The whitening decision.
+    pub whitening: Option<WhiteningReport>,
+    /// `decoder eval` on the held-out images at the end of training.
+    pub held_out: Option<EvalReport>,
+    /// The command line.
+    pub command: Option<String>,
+    /// The training data.
+    pub data: Option<String>,
+}
+
+/// The JSON sidecar of an artifact.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Sidecar {
+    /// [`FORMAT`].
+    pub format: String,
+    /// Message length L.
+    pub bits: usize,
+    pub decoder: DecoderArch,
+    /// Absent for a decoder-only artifact.
+    pub encoder: Option<EncoderArch>,
+    /// Embedding strength the encoder was trained with.
+    pub strength: f64,
+    /// Applied to the decoder's logits when present.
+    pub whitening: Option<Whitening>,
+    pub train_config: Option<TrainConfig>,
+    pub record: Option<TrainingRecord>,
+}
+
+impl Sidecar {
+    /// The sidecar of a model trained with `config`.
+    pub fn new(config: &TrainConfig, whitening: Option<Whitening>) -> Self {
+        let d = config.decoder_config();
+        Self {
+            format: FORMAT.into(),
+            bits: config.bits,
+            decoder: DecoderArch {
+                channels: d.channels,
+                depth: d.depth,
+                dwt_levels: d.dwt_levels,
+            },
+            encoder: Some(EncoderArch {
+                kind: config.encoder,
+                tile: config.encoder_tile,
+                channels: config.encoder_channels,
+                blocks: config.encoder_blocks,
+                levels: config.encoder_levels,
+            }),
+            strength: config.strength,
+            whitening,
+            train_config: Some(config.clone()),
+            record: None,
+        }
+    }
+
+    fn decoder_config(&self) -> HiddenDecoderConfig {
+        HiddenDecoderConfig::new(self.bits)
+            .with_channels(self.decoder.channels)
+            .with_depth(self.decoder.depth)
+            .with_dwt_levels(self.decoder.dwt_levels)
+    }
+
+    fn encoder_config(&self) -> Option<TrainConfig> {
+        self.encoder.as_ref().map(|e| TrainConfig {
+            bits: self.bits,
+            encoder: e.kind,
+            encoder_channels: e.channels,
+            encoder_blocks: e.blocks,
+            encoder_tile: e.tile.max(1),
+            encoder_levels: e.levels,
+            ..TrainConfig::default()
+        })
+    }
+
+    fn check(&self, origin: &Path) -> Result<(), WeightsError> {
+        if self.format != FORMAT {
+            return Err(WeightsError::Mismatch(format!(
+                "{}: sidecar format {:?}, expected {FORMAT:?}",
+                origin.display(),
+                self.format
+            )));
+        }
+        if let Some(w) = &self.whitening
+            && (w.bits() != self.bits || w.matrix.len() != self.bits * self.bits)
+        {
+            return Err(WeightsError::Mismatch(format!(
+                "{}: whitening is for {} bits, the decoder has {}",
+                origin.display(),
+                w.bits(),
+                self.bits
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// The sidecar path of an artifact: `P` with extension `.json`.
+pub fn sidecar_path(out: &Path) -> PathBuf {
+    out.with_extension("json")
+}
+
+/// The encoder path of an artifact: `P` with extension `.encoder.bpk`.
+pub fn encoder_path(out: &Path) -> PathBuf {
+    out.with_extension("encoder.bpk")
+}
+
+/// A module's weights as burnpack bytes.
+pub fn to_burnpack<M: Module>(module: M) -> Result<Vec<u8>, RecordError> {
+    Ok(module.into_record().into_bytes()?.to_vec())
+}
+
+/// `module` with weights from burnpack bytes (parameter ids restored from the record).
+pub fn from_burnpack<M: Module>(module: M, bytes: Vec<u8>) -> Result<M, RecordError> {
+    module.try_load_record(ModuleRecord::from_bytes(Bytes::from_bytes_vec(bytes))?)
+}
+
+/// Writes `bytes` to `path` atomically: a temporary file in the same folder, fsync, rename.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), WeightsError> {
+    use std::io::Write;
+    let io = |source| WeightsError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let dir = path
+        .parent()
+        .filter(|d| !d.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    std::fs::create_dir_all(dir).map_err(io)?;
+    let mut tmp = tempfile::NamedTempFile::new_in(dir).map_err(io)?;
+    tmp.write_all(bytes).map_err(io)?;
+    tmp.as_file().sync_all().map_err(io)?;
+    tmp.persist(path).map_err(|e| io(e.error))?;
+    Ok(())
+}
+
+macro_rules! shipped {
+    ($bits:literal) => {
+        (
+            include_bytes!(concat!(
+                env!("CARGO_MANIFEST_DIR"),
+                "/weights/decoder-",
+                $bits,
+                ".bpk"
+            ))
+            .as_slice(),
+            include_bytes!(concat!(
+                env!("CARGO_MANIFEST_DIR"),
+                "/weights/decoder-",
+                $bits,
+                ".encoder.bpk"
+            ))
+            .as_slice(),
+            include_bytes!(concat!(
+                env!("CARGO_MANIFEST_DIR"),
+                "/weights/decoder-",
+                $bits,
+                ".json"
+            ))
+            .as_slice(),
+        )
+    };
+}
+
+/// The shipped `(decoder, encoder, sidecar)` bytes for `bits` (empty slices = placeholders).
+pub fn shipped_bytes(bits: usize) -> Option<(&'static [u8], &'static [u8], &'static [u8])> {
+    match bits {
+        32 => Some(shipped!("32")),
+        48 => Some(shipped!("48")),
+        64 => Some(shipped!("64")),
+        _ => None,
+    }
+}
+
+/// Whether trained weights are shipped for `bits`.
+pub fn is_shipped(bits: usize) -> bool {
+    shipped_bytes(bits).is_some_and(|(d, _, s)| !d.is_empty() && !s.is_empty())
+}
+
+/// A trained model ready for inference: frozen decoder (and encoder), sidecar, device.
+#[derive(Debug)]
+pub struct WatermarkModel {
+    pub sidecar: Sidecar,
+    pub decoder: HiddenDecoder,
+    pub encoder: Option<Encoder>,
+}
+
+impl WatermarkModel {
+    /// Message length.
+    pub fn bits(&self) -> usize {
+        self.sidecar.bits
+    }
+
+    /// Builds the model from the bytes of its three files; `origin` names them in errors.
+    pub fn from_bytes(
+        decoder: &[u8],
+        encoder: Option<&[u8]>,
+        sidecar: &[u8],
+        origin: &Path,
+        device: &Device,
+    ) -> Result<Self, WeightsError> {
+        let sidecar: Sidecar =
+            serde_json::from_slice(sidecar).map_err(|source| WeightsError::Json {
+                path: sidecar_path(origin),
+                source,
+            })?;
+        sidecar.check(origin)?;
+        let record = |path: PathBuf| {
+            move |e: RecordError| WeightsError::Record {
+                path,
+                message: e.to_string(),
+            }
+        };
+        let dec = from_burnpack(sidecar.decoder_config().init(device), decoder.to_vec())
+            .map_err(record(origin.to_path_buf()))?
+            .frozen();
+        let enc = match (sidecar.encoder_config(), encoder) {
+            (Some(cfg), Some(bytes)) if !bytes.is_empty() => Some(
+                from_burnpack(cfg.init_encoder(device), bytes.to_vec())
+                    .map_err(record(encoder_path(origin)))?
+                    .freeze(),
+            ),
+            _ => None,
+        };
+        Ok(Self {
+            sidecar,
+            decoder: dec,
+            encoder: enc,
+        })
+    }
+
+    /// Loads the artifact at `path` (decoder weights; the sidecar and, if present, the encoder
+    /// next to it).
+    pub fn load(path: &Path, device: &Device) -> Result<Self, WeightsError> {
+        let read = |p: &Path| {
+            std::fs::read(p).map_err(|source| WeightsError::Io {
+                path: p.to_path_buf(),
+                source,
+            })
+        };
+        let decoder = read(path)?;
+        let sidecar = read(&sidecar_path(path))?;
+        let enc_path = encoder_path(path);
+        let encoder = if enc_path.is_file() {
+            Some(read(&enc_path)?)
+        } else {
+            None
+        };
+        Self::from_bytes(&decoder, encoder.as_deref(), &sidecar, path, device)
+    }
+
+    /// The weights shipped in the binary for `bits`.
+    pub fn shipped(bits: usize, device: &Device) -> Result<Self, WeightsError> {
+        let (decoder, encoder, sidecar) =
+            shipped_bytes(bits).ok_or(WeightsError::NoShippedWeights { bits })?;
+        if decoder.is_empty() || sidecar.is_empty() {
+            return Err(WeightsError::NotShipped { bits });
+        }
+        let origin = PathBuf::from(format!("<shipped>/weights/decoder-{bits}.bpk"));
+        let model = Self::from_bytes(decoder, Some(encoder), sidecar, &origin, device)?;
+        if model.bits() != bits {
+            return Err(WeightsError::Mismatch(format!(
+                "shipped weights for {bits} bits decode {} bits",
+                model.bits()
+            )));
+        }
+        Ok(model)
+    }
+
+    /// `--weights FILE` if given, else the shipped weights; checks the message length.
+    pub fn resolve(
+        weights: Option<&Path>,
+        bits: usize,
+        device: &Device,
+    ) -> Result<Self, WeightsError> {
+        let model = match weights {
+            Some(p) => Self::load(p, device)?,
+            None => Self::shipped(bits, device)?,
+        };
+        if model.bits() != bits {
+            return Err(WeightsError::Mismatch(format!(
+                "the weights decode {} bits, --bits asks for {bits}",
+                model.bits()
+            )));
+        }
+        Ok(model)
+    }
+
+    /// Writes the artifact to `out` (decoder, encoder if any, sidecar last), atomically.
+    pub fn save(&self, out: &Path) -> Result<(), WeightsError> {
+        let record = |path: &Path| {
+            let path = path.to_path_buf();
+            move |e: RecordError| WeightsError::Record {
+                path,
+                message: e.to_string(),
+            }
+        };
+        let dec = to_burnpack(self.decoder.clone()).map_err(record(out))?;
+        write_atomic(out, &dec)?;
+        if let Some(enc) = &self.encoder {
+            let p = encoder_path(out);
+            let bytes = to_burnpack(enc.clone()).map_err(record(&p))?;
+            write_atomic(&p, &bytes)?;
+        }
+        let json = serde_json::to_vec_pretty(&self.sidecar).expect("sidecar serialises");
+        write_atomic(&sidecar_path(out), &json)
+    }
+
+    /// Decoder logits `[B, L]` of images `[B, 3, H, W]` in [0, 1], whitened when the sidecar
+    /// has a whitening, as one vector per image.
+    pub fn logits(&self, images: Tensor<4>) -> Vec<Vec<f32>> {
+        let z = self.decoder.forward(images);
+        let z = match &self.sidecar.whitening {
+            Some(w) => w.apply(z),
+            None => z,
+        };
+        let flat = z.try_into_vec_as::<f32>().expect("logits readable");
+        flat.chunks_exact(self.bits())
+            .map(<[f32]>::to_vec)
+            .collect()
+    }
+
+    /// Raw (never whitened) logits, one vector per image.
+    pub fn raw_logits(&self, images: Tensor<4>) -> Vec<Vec<f32>> {
+        let flat = self
+            .decoder
+            .forward(images)
+            .try_into_vec_as::<f32>()
+            .expect("logits readable");
+        flat.chunks_exact(self.bits())
+            .map(<[f32]>::to_vec)
+            .collect()
+    }
+
+    /// Watermarked images `clamp(x + strength · E(x, m), 0, 1)` for images `[B, 3, H, W]` and
+    /// messages (one `Vec<bool>` of L bits per image).
+    ///
+    /// # Panics
+    /// Without an encoder, or if the shapes do not fit.
+    pub fn embed(&self, images: Tensor<4>, messages: &[Vec<bool>]) -> Tensor<4> {
+        let encoder = self.encoder.as_ref().expect("model has an encoder");
+        let levels = self.sidecar.encoder.as_ref().map_or(0, |e| e.levels);
+        let l = self.bits();
+        let bits: Vec<f32> = messages
+            .iter()
+            .flat_map(|m| m.iter().map(|&b| f32::from(u8::from(b))))
+            .collect();
+        let device = images.device();
+        let m = Tensor::<2>::from_data(TensorData::new(bits, [messages.len(), l]), &device);
+        let residual = encoder_residual(encoder, images.clone(), m, levels);
+        images
+            .add(residual.mul_scalar(self.sidecar.strength))
+            .clamp(0.0, 1.0)
+    }
+}
+
+/// An 8-bit RGB image as a `[1, 3, H, W]` tensor in [0, 1].
+pub fn rgb8_tensor(img: &image::RgbImage, device: &Device) -> Tensor<4> {
+    rgb8_batch(std::slice::from_ref(img), device)
+}
+
+/// Same-size 8-bit RGB images as a `[B, 3, H, W]` tensor in [0, 1].
+///
+/// # Panics
+/// If the sizes differ or `images` is empty.
+pub fn rgb8_batch(images: &[image::RgbImage], device: &Device) -> Tensor<4> {
+    let (w, h) = images[0].dimensions();
+    let (w, h) = (w as usize, h as usize);
+    let mut data = vec![0.0f32; images.len() * 3 * w * h];
+    for (k, img) in images.iter().enumerate() {
+        assert_eq!(img.dimensions(), (w as u32, h as u32), "same-size images");
+        let base = k * 3 * w * h;
+        for (i, p) in img.pixels().enumerate() {
+            for c in 0..3 {
+                data[base + c * w * h + i] = f32::from(p.0[c]) / 255.0;
+            }
+        }
+    }
+    Tensor::from_data(TensorData::new(data, [images.len(), 3, h, w]), device)
+}
+
+/// A `[B, 3, H, W]` tensor in [0, 1] as 8-bit RGB images (rounded).
+pub fn tensor_to_rgb8(t: Tensor<4>) -> Vec<image::RgbImage> {
+    let [b, _, h, w] = t.dims();
+    let data = t.try_into_vec_as::<f32>().expect("image readable");
+    (0..b)
+        .map(|k| {
+            let base = k * 3 * h * w;
+            image::RgbImage::from_fn(w as u32, h as u32, |x, y| {
+                let i = y as usize * w + x as usize;
+                image::Rgb(std::array::from_fn(|c| {
+                    (data[base + c * h * w + i] * 255.0)
+                        .round()
+                        .clamp(0.0, 255.0) as u8
+                }))
+            })
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shipped_weights_are_typed_errors_until_trained() {
+        let d = Device::flex();
+        for bits in SHIPPED_BITS {
+            match WatermarkModel::shipped(bits, &d) {
+                Ok(m) => {
+                    assert_eq!(m.bits(), bits);
+                    assert!(is_shipped(bits));
+                }
+                Err(WeightsError::NotShipped { bits: b }) => {
+                    assert_eq!(b, bits);
+                    assert!(!is_shipped(bits));
+                }
+                Err(e) => panic!("{bits}: {e}"),
+            }
+        }
+        assert!(matches!(
+            WatermarkModel::shipped(40, &d),
+            Err(WeightsError::NoShippedWeights { bits: 40 })
+        ));
+    }
+
+    #[test]
+    fn paths_next_to_the_decoder() {
+        let p = Path::new("weights/decoder-32.bpk");
+        assert_eq!(sidecar_path(p), Path::new("weights/decoder-32.json"));
+        assert_eq!(encoder_path(p), Path::new("weights/decoder-32.encoder.bpk"));
+    }
+}
