@@ -12,6 +12,7 @@
 //!   "crop 40 %" keeps 40 % of the area, centred.
 
 pub mod diff;
+pub mod model;
 pub mod real;
 
 pub use real::{
