@@ -223,7 +223,7 @@ impl DiffAttack {
         };
         Ok(match *self {
             Self::Noise { sigma, seed } => noise(x, sigma, seed),
-            Self::Blur { sigma, kernel } => blur(x, sigma, kernel),
+            Self::Blur { sigma, kernel } => gaussian_blur(x, sigma, kernel),
             Self::Rotate { degrees } => rotate(x, degrees),
             Self::Scale { factor } => {
                 let f = f64::from(factor);
@@ -327,7 +327,8 @@ fn gaussian_kernel(sigma: f32, kernel: u32) -> Vec<f32> {
     weights.iter().map(|v| (v / total) as f32).collect()
 }
 
-fn blur(x: Tensor<4>, sigma: f32, kernel: u32) -> Tensor<4> {
+/// Separable Gaussian blur (σ in pixels, odd kernel), reflect padding; same size out.
+pub fn gaussian_blur(x: Tensor<4>, sigma: f32, kernel: u32) -> Tensor<4> {
     if kernel == 1 {
         return x;
     }

@@ -502,15 +502,23 @@ impl WatermarkModel {
     /// Decoder logits `[B, L]` of images `[B, 3, H, W]` in [0, 1], whitened when the sidecar
     /// has a whitening, as one vector per image.
     pub fn logits(&self, images: Tensor<4>) -> Vec<Vec<f32>> {
-        let z = self.decoder.forward(images);
-        let z = match &self.sidecar.whitening {
-            Some(w) => w.apply(z),
-            None => z,
-        };
-        let flat = z.try_into_vec_as::<f32>().expect("logits readable");
+        let flat = self
+            .forward(images)
+            .try_into_vec_as::<f32>()
+            .expect("logits readable");
         flat.chunks_exact(self.bits())
             .map(<[f32]>::to_vec)
             .collect()
+    }
+
+    /// Decoder logits `[B, L]` as a tensor (whitened when the sidecar has a whitening); on an
+    /// autodiff device gradients flow back to `images`.
+    pub fn forward(&self, images: Tensor<4>) -> Tensor<2> {
+        let z = self.decoder.forward(images);
+        match &self.sidecar.whitening {
+            Some(w) => w.apply(z),
+            None => z,
+        }
     }
 
     /// Raw (never whitened) logits, one vector per image.

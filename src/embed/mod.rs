@@ -22,8 +22,10 @@
 
 pub mod attribution;
 pub mod experts;
+pub mod finetune;
 pub mod knn;
 pub mod mask;
+pub mod pipeline;
 pub mod prune;
 pub mod sbag;
 pub mod stats;
