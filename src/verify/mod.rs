@@ -4,6 +4,8 @@
 //! [`stats`] holds the exact detection statistics (binomial p-values, thresholds for a target
 //! false-positive rate, multiple-testing correction across registered messages).
 
+pub mod eval;
+pub mod message;
 pub mod stats;
 
 pub use stats::{

@@ -1,0 +1,238 @@
+//! The whole embedding of one asset, as the CLI and the service run it: targets → prune →
+//! Trio-Experts → SBAG → masks → decoupled finetuning → attribution, with progress reports and
+//! the figures a user needs (what was chosen, how long each phase took, how the views decode).
+
+use std::time::Instant;
+
+use serde::{Deserialize, Serialize};
+
+use super::attribution::AttributionRecord;
+use super::finetune::{FinetuneConfig, FinetuneError, StepLog, View, finetune, target_views};
+use super::mask::MaskConfig;
+use super::sbag::Budget;
+use super::{EmbedConfig, plan};
+use crate::decoder::WatermarkModel;
+use crate::render::{RenderError, RenderOptions};
+use crate::scene::{Camera, Gaussians};
+use crate::verify::message::to_hex;
+
+/// Everything that decides an embedding.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct EmbedOptions {
+    pub plan: EmbedConfig,
+    pub finetune: FinetuneConfig,
+    /// Ablation `--no-group-mask`: every mask is 1 (routing kept).
+    pub no_group_mask: bool,
+}
+
+impl EmbedOptions {
+    /// Render options of every render of the embedding.
+    pub fn render_options(&self) -> RenderOptions {
+        self.finetune.render_options()
+    }
+}
+
+/// Where an embedding is.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Phase {
+    Targets,
+    Plan,
+    Finetune,
+    Done,
+}
+
+/// A progress report: phase, and within finetuning the step.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Progress {
+    pub phase: Phase,
+    pub step: usize,
+    pub total: usize,
+    /// The finetuning step just done, if any.
+    pub log: Option<StepLog>,
+}
+
+/// Why an embedding failed.
+#[derive(Debug, thiserror::Error)]
+pub enum EmbedError {
+    #[error(transparent)]
+    Render(#[from] RenderError),
+    #[error(transparent)]
+    Finetune(#[from] FinetuneError),
+    #[error("no training views")]
+    NoViews,
+    #[error("the scene is empty")]
+    EmptyScene,
+}
+
+/// Seconds spent per phase.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Timings {
+    pub targets: f64,
+    pub plan: f64,
+    pub finetune: f64,
+    pub total: f64,
+}
+
+/// The report of one embedding.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct EmbedReport {
+    pub message_hex: String,
+    pub bits: usize,
+    pub views: usize,
+    pub input_gaussians: usize,
+    pub pruned: usize,
+    pub output_gaussians: usize,
+    pub carriers: usize,
+    pub compensators: usize,
+    pub budget: Budget,
+    pub mask_wm: [f32; 5],
+    pub mask_vis: [f32; 5],
+    /// Share of the watermark gradient on the carriers (1 = all of it).
+    pub wm_grad_share_carriers: f32,
+    /// The last finetuning step.
+    pub last_step: Option<StepLog>,
+    pub timings: Timings,
+    pub options: EmbedOptions,
+}
+
+/// The watermarked asset and its explanation.
+#[derive(Clone, Debug)]
+pub struct Embedded {
+    pub scene: Gaussians,
+    pub records: Vec<AttributionRecord>,
+    pub report: EmbedReport,
+    /// Every finetuning step.
+    pub log: Vec<StepLog>,
+}
+
+/// Embeds `message` into `g`, training on `cameras` (the caller keeps its held-out views out of
+/// them). `model` is the frozen decoder on an autodiff device.
+pub fn embed(
+    g: &Gaussians,
+    cameras: &[Camera],
+    message: &[bool],
+    model: &WatermarkModel,
+    opts: &EmbedOptions,
+    mut progress: impl FnMut(Progress),
+) -> Result<Embedded, EmbedError> {
+    let t_all = Instant::now();
+    if g.is_empty() {
+        return Err(EmbedError::EmptyScene);
+    }
+    if cameras.is_empty() {
+        return Err(EmbedError::NoViews);
+    }
+    let total = opts.finetune.steps;
+    let report_phase = |p: &mut dyn FnMut(Progress), phase| {
+        p(Progress {
+            phase,
+            step: 0,
+            total,
+            log: None,
+        })
+    };
+    report_phase(&mut progress, Phase::Targets);
+    let ro = opts.render_options();
+    let t = Instant::now();
+    let views: Vec<View> = target_views(g, cameras, &ro)?;
+    let t_targets = t.elapsed().as_secs_f64();
+
+    report_phase(&mut progress, Phase::Plan);
+    let t = Instant::now();
+    let mut cfg = opts.plan.clone();
+    if opts.no_group_mask {
+        cfg.mask = MaskConfig {
+            cap: [1.0; 5],
+            floor: [1.0; 5],
+            ..cfg.mask
+        };
+    }
+    let p = plan(g, cameras, message.len(), &cfg)?;
+    let t_plan = t.elapsed().as_secs_f64();
+
+    let t = Instant::now();
+    let ft = finetune(
+        p.scene(),
+        &p.masks,
+        &views,
+        model,
+        message,
+        &opts.finetune,
+        |s| {
+            progress(Progress {
+                phase: Phase::Finetune,
+                step: s.step,
+                total,
+                log: Some(*s),
+            })
+        },
+    )?;
+    let t_ft = t.elapsed().as_secs_f64();
+
+    let mut records = p.records;
+    for (r, &s) in records.iter_mut().zip(&ft.wm_grad_share) {
+        r.wm_grad_share = Some(s);
+    }
+    let carriers = p.masks.is_carrier.iter().filter(|&&c| c).count();
+    let compensators = records
+        .iter()
+        .filter(|r| r.role == super::sbag::Role::Compensator)
+        .count();
+    let share: f32 = ft
+        .wm_grad_share
+        .iter()
+        .zip(&p.masks.is_carrier)
+        .filter(|&(_, &c)| c)
+        .map(|(s, _)| s)
+        .sum();
+    let report = EmbedReport {
+        message_hex: to_hex(message),
+        bits: message.len(),
+        views: cameras.len(),
+        input_gaussians: g.len(),
+        pruned: p.prune.as_ref().map_or(0, |r| r.removed()),
+        output_gaussians: ft.gaussians.len(),
+        carriers,
+        compensators,
+        budget: p.sbag.selection.budget.clone(),
+        mask_wm: p.masks.wm_group,
+        mask_vis: p.masks.vis_group,
+        wm_grad_share_carriers: share,
+        last_step: ft.log.last().copied(),
+        timings: Timings {
+            targets: t_targets,
+            plan: t_plan,
+            finetune: t_ft,
+            total: t_all.elapsed().as_secs_f64(),
+        },
+        options: opts.clone(),
+    };
+    progress(Progress {
+        phase: Phase::Done,
+        step: total,
+        total,
+        log: None,
+    });
+    Ok(Embedded {
+        scene: ft.gaussians,
+        records,
+        report,
+        log: ft.log,
+    })
+}
+
+/// Splits views into training and held-out sets: every `every`-th view (k % every == every − 1,
+/// INRIA's "llffhold" rule shifted so view 0 trains) is held out; `every` = 0 holds out none.
+pub fn split_views(cameras: &[Camera], every: usize) -> (Vec<Camera>, Vec<Camera>) {
+    let mut train = Vec::new();
+    let mut held = Vec::new();
+    for (k, c) in cameras.iter().enumerate() {
+        if every > 0 && k % every == every - 1 {
+            held.push(c.clone());
+        } else {
+            train.push(c.clone());
+        }
+    }
+    (train, held)
+}
