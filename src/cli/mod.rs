@@ -14,6 +14,8 @@ use crate::scene::orbit::{OrbitOptions, UpAxis, orbit_cameras};
 use crate::scene::{Camera, Gaussians, Limits, write_ply};
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
+
+mod embed;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
@@ -57,6 +59,14 @@ enum Command {
     },
     /// Decode the message from images (several images of one asset: logits averaged), as JSON.
     Decode(DecodeArgs),
+    /// Watermark a scene: prune, Trio-Experts, SBAG, group masks, decoupled EOT finetuning.
+    /// Progress on stderr; report JSON on stdout.
+    Embed(Box<embed::EmbedArgs>),
+    /// Check rendered images against a message: bit accuracy, p-value, decision (JSON).
+    Verify(embed::VerifyArgs),
+    /// Evaluate a watermarked scene against its original on held-out views: PSNR, SSIM, bit
+    /// accuracy clean and under image and model attacks (JSON).
+    Eval(Box<embed::EvalSceneArgs>),
 }
 
 #[derive(Subcommand, Debug)]
@@ -252,15 +262,14 @@ struct LimitArgs {
     max_gaussians: usize,
 }
 
-#[derive(Args, Debug)]
-struct RenderArgs {
-    /// Scene file (.ply, compressed .ply, .splat, .spz).
-    scene: PathBuf,
+/// Which views: a camera file, or orbit views around the scene.
+#[derive(Args, Debug, Clone)]
+pub(crate) struct ViewArgs {
     /// Camera file: INRIA cameras.json, NeRF transforms.json or LLFF poses_bounds.npy.
     #[arg(long, conflicts_with = "orbit")]
     cameras: Option<PathBuf>,
-    /// Render N orbit views around the scene's robust bounds instead (default when no
-    /// --cameras is given: 24).
+    /// N orbit views around the scene's robust bounds instead (default when no --cameras is
+    /// given: 24).
     #[arg(long)]
     orbit: Option<usize>,
     /// Image width (orbit default 800; with --cameras the camera's own width, intrinsics scaled).
@@ -278,6 +287,60 @@ struct RenderArgs {
     /// Orbit: vertical field of view in degrees.
     #[arg(long, default_value_t = 45.0)]
     fov: f32,
+}
+
+impl ViewArgs {
+    /// The cameras these arguments name, for scene `g`.
+    pub(crate) fn cameras(&self, g: &Gaussians) -> Result<Vec<Camera>> {
+        let cams = match &self.cameras {
+            Some(path) => {
+                let cams = read_cameras(path)
+                    .with_context(|| format!("cannot load cameras {}", path.display()))?;
+                match (self.width, self.height) {
+                    (None, None) => cams,
+                    (w, h) => cams
+                        .into_iter()
+                        .map(|c| {
+                            let w = w.unwrap_or_else(|| {
+                                let h = h.unwrap_or(c.height);
+                                (c.width as f64 * h as f64 / c.height as f64).round() as u32
+                            });
+                            let h = h.unwrap_or_else(|| {
+                                (c.height as f64 * w as f64 / c.width as f64).round() as u32
+                            });
+                            c.resized(w.max(1), h.max(1))
+                        })
+                        .collect(),
+                }
+            }
+            None => {
+                let mut o = OrbitOptions {
+                    count: self.orbit.unwrap_or(24),
+                    width: self.width.unwrap_or(800),
+                    height: self.height.unwrap_or(800),
+                    fov_y_deg: self.fov,
+                    up: self.up,
+                    ..OrbitOptions::default()
+                };
+                if let Some(e) = &self.elevations {
+                    o.elevations_deg = e.clone();
+                }
+                orbit_cameras(g, &o)?
+            }
+        };
+        if cams.is_empty() {
+            bail!("no cameras");
+        }
+        Ok(cams)
+    }
+}
+
+#[derive(Args, Debug)]
+struct RenderArgs {
+    /// Scene file (.ply, compressed .ply, .splat, .spz).
+    scene: PathBuf,
+    #[command(flatten)]
+    views: ViewArgs,
     /// Background colour r,g,b in [0, 1].
     #[arg(long, value_delimiter = ',', num_args = 3, default_values_t = [0.0, 0.0, 0.0])]
     background: Vec<f32>,
@@ -318,6 +381,9 @@ fn run(cli: Cli) -> Result<()> {
             command: DecoderCommand::Eval(args),
         } => eval_cmd(&args),
         Command::Decode(args) => decode_cmd(&args),
+        Command::Embed(args) => embed::embed_cmd(&args),
+        Command::Verify(args) => embed::verify_cmd(&args),
+        Command::Eval(args) => embed::eval_scene_cmd(&args),
     }
 }
 
@@ -483,47 +549,9 @@ fn info(path: &Path, limits: &LimitArgs) -> Result<()> {
 
 fn render_cmd(a: &RenderArgs) -> Result<()> {
     let (_, g) = load(&a.scene, &a.limits)?;
-    let mut cams: Vec<Camera> = match &a.cameras {
-        Some(path) => {
-            let cams = read_cameras(path)
-                .with_context(|| format!("cannot load cameras {}", path.display()))?;
-            match (a.width, a.height) {
-                (None, None) => cams,
-                (w, h) => cams
-                    .into_iter()
-                    .map(|c| {
-                        let w = w.unwrap_or_else(|| {
-                            let h = h.unwrap_or(c.height);
-                            (c.width as f64 * h as f64 / c.height as f64).round() as u32
-                        });
-                        let h = h.unwrap_or_else(|| {
-                            (c.height as f64 * w as f64 / c.width as f64).round() as u32
-                        });
-                        c.resized(w.max(1), h.max(1))
-                    })
-                    .collect(),
-            }
-        }
-        None => {
-            let mut o = OrbitOptions {
-                count: a.orbit.unwrap_or(24),
-                width: a.width.unwrap_or(800),
-                height: a.height.unwrap_or(800),
-                fov_y_deg: a.fov,
-                up: a.up,
-                ..OrbitOptions::default()
-            };
-            if let Some(e) = &a.elevations {
-                o.elevations_deg = e.clone();
-            }
-            orbit_cameras(&g, &o)?
-        }
-    };
+    let mut cams = a.views.cameras(&g)?;
     if let Some(n) = a.limit {
         cams.truncate(n);
-    }
-    if cams.is_empty() {
-        bail!("no cameras to render");
     }
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("cannot create {}", a.out.display()))?;

@@ -1,0 +1,367 @@
+//! `splatmark embed`, `splatmark verify`, `splatmark eval`.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+
+use super::{DeviceArg, LimitArgs, ViewArgs, load};
+use crate::decoder::WatermarkModel;
+use crate::decoder::eval::read_images;
+use crate::decoder::train::DeviceChoice;
+use crate::embed::attribution::write_jsonl;
+use crate::embed::pipeline::{EmbedOptions, Phase, embed, split_views};
+use crate::embed::sbag::BudgetMode;
+use crate::render::RenderOptions;
+use crate::scene::write_ply;
+use crate::verify::eval::{EvalSettings, evaluate_scene};
+use crate::verify::message::{parse_hex, random_message, to_hex};
+use crate::verify::stats::detect;
+
+/// The decoder to use.
+#[derive(Args, Debug)]
+pub(crate) struct ModelArgs {
+    /// Decoder weights (.bpk with its .json sidecar); default: the shipped weights for --bits.
+    #[arg(long)]
+    weights: Option<PathBuf>,
+    /// Device for the networks.
+    #[arg(long, value_enum, default_value = "flex")]
+    device: DeviceArg,
+}
+
+/// Carrier budget of `--budget`.
+#[derive(Clone, Debug)]
+pub(crate) enum BudgetArg {
+    Adaptive,
+    Percent(f32),
+}
+
+impl std::str::FromStr for BudgetArg {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        if s == "adaptive" {
+            return Ok(Self::Adaptive);
+        }
+        let p: f32 = s
+            .strip_suffix('%')
+            .ok_or_else(|| format!("'{s}': use adaptive or a percentage such as 1% or 10%"))?
+            .parse()
+            .map_err(|_| format!("'{s}' is not a percentage"))?;
+        if !(p > 0.0 && p <= 100.0) {
+            return Err(format!("'{s}': the percentage must be in (0, 100]"));
+        }
+        Ok(Self::Percent(p / 100.0))
+    }
+}
+
+#[derive(Args, Debug)]
+pub(crate) struct EmbedArgs {
+    /// Scene file (.ply, compressed .ply, .splat, .spz).
+    scene: PathBuf,
+    #[command(flatten)]
+    views: ViewArgs,
+    /// Message length: 32, 48 or 64.
+    #[arg(long, default_value_t = 32)]
+    bits: usize,
+    /// Message as hex (bits/4 digits); default: a fresh random message.
+    #[arg(long)]
+    message: Option<String>,
+    /// Watermarked scene (INRIA binary PLY).
+    #[arg(long)]
+    out: PathBuf,
+    /// Per-Gaussian attribution (JSON Lines).
+    #[arg(long)]
+    attribution: Option<PathBuf>,
+    /// Report (JSON): message, carriers, budget, timings, final metrics.
+    #[arg(long)]
+    report: Option<PathBuf>,
+    /// Every N-th view is held out of training (0: train on all).
+    #[arg(long, default_value_t = 8)]
+    holdout_every: usize,
+    /// Finetuning steps.
+    #[arg(long)]
+    steps: Option<usize>,
+    /// Views per step (logits averaged over them).
+    #[arg(long)]
+    views_per_step: Option<usize>,
+    /// Multiplier of the carriers' learning rates.
+    #[arg(long)]
+    wm_lr_scale: Option<f32>,
+    /// Carrier budget: adaptive (the paper's SBAG budget), or a share of the Gaussians, e.g. 1%.
+    #[arg(long, default_value = "adaptive")]
+    budget: BudgetArg,
+    /// Ablation: carriers drawn at random (same budget) instead of by SBAG.
+    #[arg(long)]
+    no_sbag: bool,
+    /// Ablation: no channel-wise group masks (every mask 1, routing kept).
+    #[arg(long)]
+    no_group_mask: bool,
+    /// Ablation: one joint loss on every Gaussian, no routing.
+    #[arg(long)]
+    coupled: bool,
+    /// Skip contribution pruning.
+    #[arg(long)]
+    no_prune: bool,
+    /// Background colour r,g,b in [0, 1].
+    #[arg(long, value_delimiter = ',', num_args = 3, default_values_t = [0.0, 0.0, 0.0])]
+    background: Vec<f32>,
+    /// Seed of the finetuning's random draws (views, attacks) and of --no-sbag.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    #[command(flatten)]
+    model: ModelArgs,
+    #[command(flatten)]
+    limits: LimitArgs,
+}
+
+fn load_model(m: &ModelArgs, bits: usize, autodiff: bool) -> Result<WatermarkModel> {
+    let device = DeviceChoice::from(m.device).device();
+    let device = if autodiff { device.autodiff() } else { device };
+    Ok(WatermarkModel::resolve(
+        m.weights.as_deref(),
+        bits,
+        &device,
+    )?)
+}
+
+fn background(v: &[f32]) -> Result<[f32; 3]> {
+    match v {
+        [r, g, b] if v.iter().all(|x| (0.0..=1.0).contains(x)) => Ok([*r, *g, *b]),
+        _ => bail!("--background needs three values in [0, 1]"),
+    }
+}
+
+/// Writes `bytes` to `path` atomically (temporary file in the same folder, then rename).
+fn write_atomic(path: &Path, f: impl FnOnce(&mut std::fs::File) -> Result<()>) -> Result<()> {
+    let dir = path
+        .parent()
+        .filter(|d| !d.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    let mut tmp = tempfile::NamedTempFile::new_in(dir)
+        .with_context(|| format!("cannot create a file in {}", dir.display()))?;
+    f(tmp.as_file_mut())?;
+    tmp.as_file().sync_all()?;
+    tmp.persist(path)
+        .with_context(|| format!("cannot write {}", path.display()))?;
+    Ok(())
+}
+
+pub(crate) fn embed_cmd(a: &EmbedArgs) -> Result<()> {
+    if ![32, 48, 64].contains(&a.bits) {
+        bail!("--bits must be 32, 48 or 64, got {}", a.bits);
+    }
+    let message = match &a.message {
+        Some(h) => parse_hex(h, a.bits)?,
+        None => random_message(a.bits),
+    };
+    let (_, g) = load(&a.scene, &a.limits)?;
+    let cams = a.views.cameras(&g)?;
+    let (train, held) = split_views(&cams, a.holdout_every);
+    if train.is_empty() {
+        bail!(
+            "no training views left after holding out every {}-th",
+            a.holdout_every
+        );
+    }
+    let model = load_model(&a.model, a.bits, true)?;
+    let mut opts = EmbedOptions {
+        no_group_mask: a.no_group_mask,
+        ..EmbedOptions::default()
+    };
+    opts.finetune.background = background(&a.background)?;
+    if a.no_prune {
+        opts.plan.prune = None;
+    }
+    opts.plan.sbag.mode = match (&a.budget, a.no_sbag) {
+        (BudgetArg::Adaptive, false) => BudgetMode::Adaptive,
+        (BudgetArg::Adaptive, true) => BudgetMode::Random { seed: a.seed },
+        (BudgetArg::Percent(f), false) => BudgetMode::Fraction(*f),
+        (BudgetArg::Percent(_), true) => {
+            bail!("--no-sbag draws as many carriers as the adaptive budget; drop --budget")
+        }
+    };
+    opts.finetune.coupled = a.coupled;
+    opts.finetune.seed = a.seed;
+    if let Some(s) = a.steps {
+        opts.finetune.steps = s;
+    }
+    if let Some(v) = a.views_per_step {
+        opts.finetune.views_per_step = v;
+    }
+    if let Some(s) = a.wm_lr_scale {
+        opts.finetune.wm_lr_scale = s;
+    }
+    eprintln!(
+        "embedding {} bits ({}) into {} ({} Gaussians) over {} training views ({} held out)",
+        a.bits,
+        to_hex(&message),
+        a.scene.display(),
+        g.len(),
+        train.len(),
+        held.len()
+    );
+    let every = (opts.finetune.steps / 20).max(1);
+    let out = embed(&g, &train, &message, &model, &opts, |p| match p.phase {
+        Phase::Targets => eprintln!("rendering targets…"),
+        Phase::Plan => eprintln!("pruning, scoring, selecting and splitting carriers…"),
+        Phase::Finetune => {
+            if let Some(s) = p.log
+                && (s.step % every == 0 || s.step == 1)
+            {
+                eprintln!(
+                    "step {}/{} | L_wm {:.4} (bce clean {:.4}, eot {:.4}) | bits clean {:.3} eot {:.3} | L_vis {:.4} | {:.2} dB | {:.2} s/step",
+                    s.step,
+                    p.total,
+                    s.l_wm,
+                    s.bce_clean,
+                    s.bce_eot,
+                    s.bit_acc_clean,
+                    s.bit_acc_eot,
+                    s.l_vis,
+                    s.psnr,
+                    s.seconds
+                );
+            }
+        }
+        Phase::Done => {}
+    })?;
+    let r = &out.report;
+    eprintln!(
+        "{} carriers + {} compensators (budget B = {}, {} pruned); carriers hold {:.1} % of the watermark gradient; {:.1} s",
+        r.carriers,
+        r.compensators,
+        r.budget.b,
+        r.pruned,
+        100.0 * r.wm_grad_share_carriers,
+        r.timings.total
+    );
+    write_atomic(&a.out, |f| {
+        write_ply(&out.scene, std::io::BufWriter::new(f))?;
+        Ok(())
+    })?;
+    if let Some(p) = &a.attribution {
+        write_atomic(p, |f| Ok(write_jsonl(&out.records, f)?))?;
+    }
+    let mut report = serde_json::to_value(&out.report)?;
+    report["scene"] = serde_json::json!(a.scene);
+    report["output"] = serde_json::json!(a.out);
+    report["held_out_views"] = serde_json::json!(held.len());
+    if let Some(p) = &a.report {
+        write_atomic(p, |f| {
+            serde_json::to_writer_pretty(&mut *f, &report)?;
+            f.write_all(b"\n")?;
+            Ok(())
+        })?;
+    }
+    println!("{}", serde_json::to_string_pretty(&report)?);
+    Ok(())
+}
+
+#[derive(Args, Debug)]
+pub(crate) struct VerifyArgs {
+    /// Rendered images of the disputed asset (PNG/JPEG); logits are averaged over them.
+    #[arg(required = true)]
+    images: Vec<PathBuf>,
+    /// The registered message, hex; its length gives the number of bits.
+    #[arg(long)]
+    message: String,
+    /// Family-wise false-positive rate of the decision.
+    #[arg(long, default_value_t = 1e-6)]
+    fpr: f64,
+    #[command(flatten)]
+    model: ModelArgs,
+}
+
+pub(crate) fn verify_cmd(a: &VerifyArgs) -> Result<()> {
+    let hex = a.message.trim().trim_start_matches("0x");
+    let bits = hex.len() * 4;
+    let message = parse_hex(hex, bits)?;
+    let model = load_model(&a.model, bits, false)?;
+    let images = read_images(&a.images)?;
+    let device = DeviceChoice::from(a.model.device).device();
+    let report = crate::decoder::eval::decode_images(&model, &images, &device);
+    let decoded: Vec<bool> = report.logits.iter().map(|&z| z > 0.0).collect();
+    let d = detect(&decoded, &message, 1, a.fpr)?;
+    let json = serde_json::json!({
+        "images": a.images,
+        "message": to_hex(&message),
+        "decoded": to_hex(&decoded),
+        "bit_accuracy": d.bit_accuracy,
+        "matches": d.matches,
+        "bits": d.bits,
+        "p_value": d.p_value,
+        "threshold": d.threshold,
+        "fpr": d.fpr,
+        "detected": d.detected,
+    });
+    println!("{}", serde_json::to_string_pretty(&json)?);
+    Ok(())
+}
+
+#[derive(Args, Debug)]
+pub(crate) struct EvalSceneArgs {
+    /// The scene before watermarking.
+    original: PathBuf,
+    /// The watermarked scene.
+    watermarked: PathBuf,
+    /// The embedded message, hex.
+    #[arg(long)]
+    message: String,
+    #[command(flatten)]
+    views: ViewArgs,
+    /// Evaluate on every N-th view (the views `embed --holdout-every N` held out); 0 or 1: all.
+    #[arg(long, default_value_t = 8)]
+    holdout_every: usize,
+    /// Background colour r,g,b in [0, 1].
+    #[arg(long, value_delimiter = ',', num_args = 3, default_values_t = [0.0, 0.0, 0.0])]
+    background: Vec<f32>,
+    #[arg(long, default_value_t = 1e-6)]
+    fpr: f64,
+    /// Seed of the random attacks.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Print JSON (the only output format; accepted for scripts).
+    #[arg(long)]
+    json: bool,
+    #[command(flatten)]
+    model: ModelArgs,
+    #[command(flatten)]
+    limits: LimitArgs,
+}
+
+pub(crate) fn eval_scene_cmd(a: &EvalSceneArgs) -> Result<()> {
+    let hex = a.message.trim().trim_start_matches("0x");
+    let message = parse_hex(hex, hex.len() * 4)?;
+    let (_, original) = load(&a.original, &a.limits)?;
+    let (_, marked) = load(&a.watermarked, &a.limits)?;
+    // Views are placed around the original, so both scenes are seen from the same cameras.
+    let cams = a.views.cameras(&original)?;
+    let held = if a.holdout_every <= 1 {
+        cams
+    } else {
+        split_views(&cams, a.holdout_every).1
+    };
+    if held.is_empty() {
+        bail!("no held-out views; use more views or --holdout-every 1");
+    }
+    let model = load_model(&a.model, message.len(), false)?;
+    let settings = EvalSettings {
+        render: RenderOptions {
+            background: background(&a.background)?,
+            ..RenderOptions::default()
+        },
+        fpr: a.fpr,
+        seed: a.seed,
+    };
+    eprintln!("evaluating on {} held-out views…", held.len());
+    let t = std::time::Instant::now();
+    let mut e = serde_json::to_value(evaluate_scene(
+        &original, &marked, &held, &model, &message, &settings,
+    )?)?;
+    e["seconds"] = serde_json::json!(t.elapsed().as_secs_f64());
+    e["message"] = serde_json::json!(to_hex(&message));
+    println!("{}", serde_json::to_string_pretty(&e)?);
+    Ok(())
+}
