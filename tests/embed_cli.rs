@@ -1,0 +1,183 @@
+//! `splatmark embed`, `verify` and `eval` end to end on a small synthetic scene with the shipped
+//! 32-bit decoder: the files a user gets, their consistency, and clear failures on bad input.
+//! (How well the watermark survives is measured in docs/RESULTS.md, not asserted here.)
+
+use std::path::Path;
+use std::process::Command;
+
+use splatmark::scene::synthetic::object_scene;
+use splatmark::scene::{Limits, read_scene, write_ply};
+
+fn bin() -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_splatmark"));
+    c.env("XDG_RUNTIME_DIR", std::env::temp_dir());
+    c
+}
+
+fn ok_json(out: &std::process::Output) -> serde_json::Value {
+    assert!(
+        out.status.success(),
+        "stderr: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).expect("stdout is JSON")
+}
+
+fn scene(dir: &Path) -> std::path::PathBuf {
+    let p = dir.join("object.ply");
+    let g = object_scene(1500, 1, 4);
+    write_ply(&g, std::fs::File::create(&p).unwrap()).unwrap();
+    p
+}
+
+const VIEWS: [&str; 6] = ["--orbit", "8", "--width", "64", "--height", "64"];
+
+#[test]
+fn embed_writes_scene_attribution_and_report_that_agree() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = scene(dir.path());
+    let out = dir.path().join("marked.ply");
+    let attr = dir.path().join("attr.jsonl");
+    let report = dir.path().join("report.json");
+    let v = ok_json(
+        &bin()
+            .arg("embed")
+            .arg(&input)
+            .args(VIEWS)
+            .args(["--bits", "32", "--message", "c0ffee42", "--steps", "3"])
+            .arg("--out")
+            .arg(&out)
+            .arg("--attribution")
+            .arg(&attr)
+            .arg("--report")
+            .arg(&report)
+            .output()
+            .unwrap(),
+    );
+    assert_eq!(v["message_hex"], "c0ffee42");
+    assert_eq!(v["bits"], 32);
+    assert_eq!(v["views"], 7, "8 orbit views, every 8th held out");
+    let n_out = v["output_gaussians"].as_u64().unwrap() as usize;
+    let carriers = v["carriers"].as_u64().unwrap() as usize;
+    assert!(carriers > 0);
+    // The report file is the JSON printed.
+    let file: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    assert_eq!(file, v);
+    // The scene has the reported count; one attribution record per Gaussian, roles agree.
+    let g = read_scene(&out, &Limits::default()).unwrap();
+    assert_eq!(g.len(), n_out);
+    let lines: Vec<serde_json::Value> = std::fs::read_to_string(&attr)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(lines.len(), n_out);
+    let n_carrier = lines.iter().filter(|r| r["role"] == "carrier").count();
+    assert_eq!(n_carrier, carriers);
+    let share: f64 = lines
+        .iter()
+        .map(|r| r["wm_grad_share"].as_f64().unwrap())
+        .sum();
+    assert!((share - 1.0).abs() < 1e-3, "{share}");
+
+    // eval and verify run on what embed wrote.
+    let e = ok_json(
+        &bin()
+            .arg("eval")
+            .arg(&input)
+            .arg(&out)
+            .args(VIEWS)
+            .args(["--message", "c0ffee42", "--json"])
+            .output()
+            .unwrap(),
+    );
+    assert_eq!(e["views"], 1);
+    let names: Vec<&str> = e["rows"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["name"].as_str().unwrap())
+        .collect();
+    for want in [
+        "clean",
+        "unmarked",
+        "noise",
+        "rotation",
+        "scaling",
+        "blur",
+        "crop",
+        "jpeg",
+        "combined",
+        "noise_0.1",
+        "remove_20",
+        "clone_20",
+    ] {
+        assert!(names.contains(&want), "{want} missing from {names:?}");
+    }
+    assert!(e["psnr"].as_f64().unwrap() > 10.0);
+
+    let renders = dir.path().join("renders");
+    assert!(
+        bin()
+            .arg("render")
+            .arg(&out)
+            .args(VIEWS)
+            .args(["--limit", "2", "--out"])
+            .arg(&renders)
+            .status()
+            .unwrap()
+            .success()
+    );
+    let mut pngs: Vec<_> = std::fs::read_dir(&renders)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    pngs.sort();
+    let r = ok_json(
+        &bin()
+            .arg("verify")
+            .args(&pngs)
+            .args(["--message", "c0ffee42"])
+            .output()
+            .unwrap(),
+    );
+    assert_eq!(r["bits"], 32);
+    let acc = r["bit_accuracy"].as_f64().unwrap();
+    let p = r["p_value"].as_f64().unwrap();
+    assert!((0.0..=1.0).contains(&acc) && (0.0..=1.0).contains(&p));
+    let decided = r["matches"].as_u64().unwrap() >= r["threshold"].as_u64().unwrap();
+    assert_eq!(r["detected"], decided);
+}
+
+#[test]
+fn bad_messages_and_sizes_fail_clearly_and_write_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = scene(dir.path());
+    let out = dir.path().join("marked.ply");
+    for (args, needle) in [
+        (
+            vec!["--bits", "32", "--message", "abc"],
+            "32 bits need 8 hex digits",
+        ),
+        (
+            vec!["--bits", "32", "--message", "zzzzzzzz"],
+            "not hexadecimal",
+        ),
+        (vec!["--bits", "40"], "--bits must be 32, 48 or 64"),
+        (vec!["--budget", "150%"], "(0, 100]"),
+    ] {
+        let o = bin()
+            .arg("embed")
+            .arg(&input)
+            .args(VIEWS)
+            .args(&args)
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .unwrap();
+        assert!(!o.status.success(), "{args:?}");
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(err.contains(needle), "{args:?}: {err}");
+        assert!(!out.exists(), "{args:?} left a file");
+    }
+}
