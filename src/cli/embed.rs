@@ -79,6 +79,10 @@ pub(crate) struct EmbedArgs {
     /// Every N-th view is held out of training (0: train on all).
     #[arg(long, default_value_t = 8)]
     holdout_every: usize,
+    /// JSON file with the embedding options to start from (`EmbedOptions`, as the report's
+    /// `options` prints them; any field left out keeps its default); flags override it.
+    #[arg(long)]
+    config: Option<PathBuf>,
     /// Finetuning steps.
     #[arg(long)]
     steps: Option<usize>,
@@ -103,12 +107,12 @@ pub(crate) struct EmbedArgs {
     /// Skip contribution pruning.
     #[arg(long)]
     no_prune: bool,
-    /// Background colour r,g,b in [0, 1].
-    #[arg(long, value_delimiter = ',', num_args = 3, default_values_t = [0.0, 0.0, 0.0])]
-    background: Vec<f32>,
-    /// Seed of the finetuning's random draws (views, attacks) and of --no-sbag.
-    #[arg(long, default_value_t = 0)]
-    seed: u64,
+    /// Background colour r,g,b in [0, 1] (default black).
+    #[arg(long, value_delimiter = ',', num_args = 3)]
+    background: Option<Vec<f32>>,
+    /// Seed of the finetuning's random draws (views, attacks) and of --no-sbag (default 0).
+    #[arg(long)]
+    seed: Option<u64>,
     #[command(flatten)]
     model: ModelArgs,
     #[command(flatten)]
@@ -166,24 +170,34 @@ pub(crate) fn embed_cmd(a: &EmbedArgs) -> Result<()> {
         );
     }
     let model = load_model(&a.model, a.bits, true)?;
-    let mut opts = EmbedOptions {
-        no_group_mask: a.no_group_mask,
-        ..EmbedOptions::default()
+    let mut opts: EmbedOptions = match &a.config {
+        Some(p) => {
+            let bytes = std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?;
+            serde_json::from_slice(&bytes)
+                .with_context(|| format!("{} is not valid embedding options", p.display()))?
+        }
+        None => EmbedOptions::default(),
     };
-    opts.finetune.background = background(&a.background)?;
+    opts.no_group_mask |= a.no_group_mask;
+    if let Some(b) = &a.background {
+        opts.finetune.background = background(b)?;
+    }
+    if let Some(s) = a.seed {
+        opts.finetune.seed = s;
+    }
+    let seed = opts.finetune.seed;
     if a.no_prune {
         opts.plan.prune = None;
     }
     opts.plan.sbag.mode = match (&a.budget, a.no_sbag) {
-        (BudgetArg::Adaptive, false) => BudgetMode::Adaptive,
-        (BudgetArg::Adaptive, true) => BudgetMode::Random { seed: a.seed },
+        (BudgetArg::Adaptive, false) => opts.plan.sbag.mode,
+        (BudgetArg::Adaptive, true) => BudgetMode::Random { seed },
         (BudgetArg::Percent(f), false) => BudgetMode::Fraction(*f),
         (BudgetArg::Percent(_), true) => {
             bail!("--no-sbag draws as many carriers as the adaptive budget; drop --budget")
         }
     };
-    opts.finetune.coupled = a.coupled;
-    opts.finetune.seed = a.seed;
+    opts.finetune.coupled |= a.coupled;
     if let Some(s) = a.steps {
         opts.finetune.steps = s;
     }

@@ -46,6 +46,7 @@ use rayon::prelude::*;
 /// Constants of the Trio-Experts that the paper does not give (see the module docs; defaults
 /// in brackets).
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
 pub struct ExpertConfig {
     /// k of the neighbourhood 𝒩_k(i) [16, as 3D-GS's own k-NN initialisation uses a few
     /// neighbours; enough for a stable dispersion].

@@ -46,6 +46,7 @@ use crate::scene::{Camera, Gaussians};
 
 /// Adam learning rates per parameter channel (INRIA 3D-GS's, positions as 3D-GSW's finetuning).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
 pub struct LearningRates {
     pub means: f32,
     pub dc: f32,
@@ -70,6 +71,7 @@ impl Default for LearningRates {
 
 /// The λ of eqs. `Lvis` and `Lwm` (and of the reported joint objective).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
 pub struct LossWeights {
     /// λ_rec (L1).
     pub rec: f32,
@@ -108,6 +110,7 @@ impl Default for LossWeights {
 
 /// How to finetune.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
 pub struct FinetuneConfig {
     /// Optimiser steps.
     pub steps: usize,

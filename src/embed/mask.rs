@@ -61,6 +61,7 @@ impl Channel {
 
 /// Caps and floors of the masks.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
 pub struct MaskConfig {
     /// cap_g, in [`Channel::ALL`] order.
     pub cap: [f32; 5],

@@ -51,6 +51,7 @@ pub fn subset(g: &Gaussians, idx: &[usize]) -> Gaussians {
 
 /// Configuration of the whole preparation (default: the paper's pipeline, pruning included).
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
 pub struct EmbedConfig {
     /// `None` skips pruning.
     pub prune: Option<prune::PruneConfig>,

@@ -18,6 +18,7 @@ use crate::verify::message::to_hex;
 
 /// Everything that decides an embedding.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
 pub struct EmbedOptions {
     pub plan: EmbedConfig,
     pub finetune: FinetuneConfig,

@@ -23,6 +23,7 @@ use std::sync::Arc;
 
 /// How to prune.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
 pub struct PruneConfig {
     /// Gaussians whose V ≤ this in every view are removed (paper: 1e-8).
     pub threshold: f32,

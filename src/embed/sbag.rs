@@ -46,6 +46,7 @@ pub enum BudgetMode {
 
 /// SBAG constants the paper does not give (defaults in brackets, with the reason).
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default)]
 pub struct SbagConfig {
     /// β of eq. `rk_clip`, shared by the experts [0.25: U is min–max normalised, so it spans
     /// [0, 1]; β = 0.25 lets the most uncertain evidence cost a quarter of the score instead of
