@@ -181,3 +181,53 @@ fn bad_messages_and_sizes_fail_clearly_and_write_nothing() {
         assert!(!out.exists(), "{args:?} left a file");
     }
 }
+
+#[test]
+fn a_partial_config_file_sets_what_it_names_and_keeps_the_rest() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = scene(dir.path());
+    let cfg = dir.path().join("cfg.json");
+    std::fs::write(
+        &cfg,
+        r#"{"finetune": {"steps": 2, "weights": {"wm": 0.25}}, "no_group_mask": true}"#,
+    )
+    .unwrap();
+    let v = ok_json(
+        &bin()
+            .arg("embed")
+            .arg(&input)
+            .args(VIEWS)
+            .args(["--message", "0123abcd", "--config"])
+            .arg(&cfg)
+            .arg("--out")
+            .arg(dir.path().join("m.ply"))
+            .output()
+            .unwrap(),
+    );
+    let o = &v["options"];
+    assert_eq!(o["finetune"]["steps"], 2);
+    assert_eq!(o["finetune"]["weights"]["wm"], 0.25);
+    let rec = o["finetune"]["weights"]["rec"].as_f64().unwrap();
+    assert!(
+        (rec - 0.8).abs() < 1e-6,
+        "unnamed fields keep defaults: {rec}"
+    );
+    assert_eq!(o["finetune"]["views_per_step"], 2);
+    assert_eq!(o["no_group_mask"], true);
+    assert_eq!(v["mask_wm"], serde_json::json!([1.0, 1.0, 1.0, 1.0, 1.0]));
+
+    std::fs::write(&cfg, r#"{"finetune": {"steps": "many"}}"#).unwrap();
+    let o = bin()
+        .arg("embed")
+        .arg(&input)
+        .args(VIEWS)
+        .arg("--config")
+        .arg(&cfg)
+        .arg("--out")
+        .arg(dir.path().join("n.ply"))
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("is not valid embedding options"));
+    assert!(!dir.path().join("n.ply").exists());
+}

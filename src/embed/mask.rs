@@ -71,6 +71,8 @@ pub struct MaskConfig {
     pub position: f32,
     /// Per-Gaussian masks instead of the paper's group aggregates.
     pub per_point: bool,
+    /// Every mask 1 (routing kept): the ablation without group masks.
+    pub uniform: bool,
 }
 
 impl Default for MaskConfig {
@@ -80,6 +82,7 @@ impl Default for MaskConfig {
             floor: [0.1, 0.05, 0.05, 0.0, 0.0],
             position: 0.0,
             per_point: false,
+            uniform: false,
         }
     }
 }
@@ -137,8 +140,20 @@ pub fn build_masks(
         w_wm.len() == n && w_vis.len() == n,
         "weights and roles disagree in length"
     );
-    let wm_of = |w: f32, g: usize| w.clamp(0.0, cfg.cap[g]);
-    let vis_of = |w: f32, g: usize| w.clamp(0.0, cfg.cap[g]).max(cfg.floor[g]);
+    let wm_of = |w: f32, g: usize| {
+        if cfg.uniform {
+            1.0
+        } else {
+            w.clamp(0.0, cfg.cap[g])
+        }
+    };
+    let vis_of = |w: f32, g: usize| {
+        if cfg.uniform {
+            1.0
+        } else {
+            w.clamp(0.0, cfg.cap[g]).max(cfg.floor[g])
+        }
+    };
     let mut wm_group = [0.0f32; 5];
     let mut vis_group = [0.0f32; 5];
     for g in 0..5 {

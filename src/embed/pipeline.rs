@@ -144,8 +144,7 @@ pub fn embed(
     let mut cfg = opts.plan.clone();
     if opts.no_group_mask {
         cfg.mask = MaskConfig {
-            cap: [1.0; 5],
-            floor: [1.0; 5],
+            uniform: true,
             ..cfg.mask
         };
     }
