@@ -13,4 +13,5 @@ pub mod decoder;
 pub mod embed;
 pub mod render;
 pub mod scene;
+pub mod store;
 pub mod verify;

@@ -1,0 +1,266 @@
+//! Assets: uploaded originals and the watermarked scenes published from them.
+
+use super::audit::{self, AuditEntry};
+use super::blobs::{BlobRef, is_blob_id};
+use super::error::{Result, StoreError};
+use super::{Store, parse_opt_uuid, parse_uuid, time, to_i64, to_u64};
+use serde::{Deserialize, Serialize};
+use sqlx::Row;
+use sqlx::sqlite::{SqliteConnection, SqliteRow};
+use uuid::Uuid;
+
+/// Scene formats an asset may have.
+pub const SCENE_FORMATS: [&str; 4] = ["ply", "splat", "spz", "compressed_ply"];
+const MAX_NAME: usize = 255;
+
+/// Whether an asset was uploaded or made by watermarking.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AssetKind {
+    /// Uploaded by its owner.
+    Original,
+    /// Published by a watermarking job.
+    Watermarked,
+}
+
+impl AssetKind {
+    /// The stored / serialized name.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            AssetKind::Original => "original",
+            AssetKind::Watermarked => "watermarked",
+        }
+    }
+
+    fn parse(s: &str) -> Result<Self> {
+        match s {
+            "original" => Ok(AssetKind::Original),
+            "watermarked" => Ok(AssetKind::Watermarked),
+            _ => Err(StoreError::corrupt(format!("asset kind {s:?}"))),
+        }
+    }
+}
+
+/// An asset to insert; its blobs must already be committed to the [`super::BlobStore`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct NewAsset {
+    pub owner: String,
+    pub kind: AssetKind,
+    /// The original a watermarked asset was made from.
+    pub parent_id: Option<Uuid>,
+    /// The job that made a watermarked asset (unique: one result per job).
+    pub source_job_id: Option<Uuid>,
+    /// The scene file.
+    pub blob: BlobRef,
+    /// "ply", "splat", "spz" or "compressed_ply".
+    pub format: String,
+    /// The name the owner gave the file (shown back, never used as a path).
+    pub file_name: Option<String>,
+    pub gaussians: u64,
+    pub sh_degree: u8,
+    /// A camera file uploaded with the scene.
+    pub cameras_blob: Option<BlobRef>,
+    pub cameras_format: Option<String>,
+}
+
+/// A stored asset.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Asset {
+    pub id: Uuid,
+    pub owner: String,
+    pub kind: AssetKind,
+    pub parent_id: Option<Uuid>,
+    pub source_job_id: Option<Uuid>,
+    /// Blob id of the scene file.
+    pub sha256: String,
+    pub size: u64,
+    pub format: String,
+    pub file_name: Option<String>,
+    pub gaussians: u64,
+    pub sh_degree: u8,
+    /// Blob id of the camera file, if any.
+    pub cameras_sha256: Option<String>,
+    pub cameras_format: Option<String>,
+    /// RFC 3339 UTC.
+    pub created_at: String,
+}
+
+impl Store {
+    /// Inserts an asset and its audit row (`asset_id` filled in when `None`) in one transaction.
+    /// `Invalid` for bad fields, a missing blob or a blob of another size; nothing is written then.
+    pub async fn insert_asset(&self, a: NewAsset, mut audit_entry: AuditEntry) -> Result<Asset> {
+        self.validate_asset(&a)?;
+        let mut tx = self.begin_immediate().await?;
+        let asset = insert_in(&mut tx, &a).await?;
+        audit_entry.asset_id.get_or_insert(asset.id);
+        audit::append_in(&mut tx, &audit_entry).await?;
+        tx.commit().await?;
+        Ok(asset)
+    }
+
+    /// One asset.
+    pub async fn get_asset(&self, id: Uuid) -> Result<Option<Asset>> {
+        let sql = "SELECT id, owner, kind, parent_id, source_job_id, sha256, size, format, \
+                   file_name, gaussians, sh_degree, cameras_sha256, cameras_format, created_at \
+                   FROM assets WHERE id = ?";
+        let row = sqlx::query(sql)
+            .bind(id.to_string())
+            .fetch_optional(&self.pool)
+            .await?;
+        row.as_ref().map(decode_asset).transpose()
+    }
+
+    /// The watermarked assets made from `original`, oldest first.
+    pub async fn watermarked_of(&self, original: Uuid) -> Result<Vec<Asset>> {
+        let sql = "SELECT id, owner, kind, parent_id, source_job_id, sha256, size, format, \
+                   file_name, gaussians, sh_degree, cameras_sha256, cameras_format, created_at \
+                   FROM assets WHERE parent_id = ? AND kind = 'watermarked' \
+                   ORDER BY created_at, seq";
+        let rows = sqlx::query(sql)
+            .bind(original.to_string())
+            .fetch_all(&self.pool)
+            .await?;
+        rows.iter().map(decode_asset).collect()
+    }
+
+    /// Field checks and the blobs' presence and sizes.
+    pub(crate) fn validate_asset(&self, a: &NewAsset) -> Result<()> {
+        if a.owner.is_empty() || a.owner.len() > MAX_NAME || a.owner.chars().any(char::is_control) {
+            return Err(StoreError::invalid(
+                "owner must be 1..=255 bytes, no control characters",
+            ));
+        }
+        if !SCENE_FORMATS.contains(&a.format.as_str()) {
+            return Err(StoreError::invalid(format!(
+                "unknown scene format {:?}",
+                a.format
+            )));
+        }
+        if let Some(n) = &a.file_name
+            && (n.len() > MAX_NAME || n.chars().any(char::is_control))
+        {
+            return Err(StoreError::invalid(
+                "file name must be <= 255 bytes, no control characters",
+            ));
+        }
+        if a.sh_degree > 3 {
+            return Err(StoreError::invalid("sh_degree must be 0..=3"));
+        }
+        to_i64(a.gaussians)?;
+        match a.kind {
+            AssetKind::Original if a.parent_id.is_some() || a.source_job_id.is_some() => {
+                return Err(StoreError::invalid(
+                    "an original has no parent or source job",
+                ));
+            }
+            AssetKind::Watermarked if a.parent_id.is_none() => {
+                return Err(StoreError::invalid("a watermarked asset needs its parent"));
+            }
+            _ => {}
+        }
+        self.check_blob(&a.blob)?;
+        match (&a.cameras_blob, &a.cameras_format) {
+            (None, None) => {}
+            (Some(b), Some(f)) => {
+                let token = |c: char| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '_';
+                if f.is_empty() || f.len() > 32 || !f.chars().all(token) {
+                    return Err(StoreError::invalid(
+                        "camera format must be 1..=32 of [a-z0-9_] (e.g. \"inria\", \"nerf\", \"llff\")",
+                    ));
+                }
+                self.check_blob(b)?;
+            }
+            _ => {
+                return Err(StoreError::invalid(
+                    "cameras_blob and cameras_format go together",
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    fn check_blob(&self, b: &BlobRef) -> Result<()> {
+        if !is_blob_id(&b.sha256) {
+            return Err(StoreError::invalid(
+                "blob id must be 64 lowercase hex digits",
+            ));
+        }
+        match self.blobs().size_of(&b.sha256) {
+            Ok(size) if size == b.size => Ok(()),
+            Ok(size) => Err(StoreError::invalid(format!(
+                "blob {} has {size} bytes, not {}",
+                b.sha256, b.size
+            ))),
+            Err(StoreError::NotFound) => Err(StoreError::invalid(format!(
+                "blob {} is not stored",
+                b.sha256
+            ))),
+            Err(e) => Err(e),
+        }
+    }
+}
+
+/// Inserts a validated asset on `conn` (inside the caller's transaction).
+pub(crate) async fn insert_in(conn: &mut SqliteConnection, a: &NewAsset) -> Result<Asset> {
+    let asset = Asset {
+        id: Uuid::new_v4(),
+        owner: a.owner.clone(),
+        kind: a.kind,
+        parent_id: a.parent_id,
+        source_job_id: a.source_job_id,
+        sha256: a.blob.sha256.clone(),
+        size: a.blob.size,
+        format: a.format.clone(),
+        file_name: a.file_name.clone(),
+        gaussians: a.gaussians,
+        sh_degree: a.sh_degree,
+        cameras_sha256: a.cameras_blob.as_ref().map(|b| b.sha256.clone()),
+        cameras_format: a.cameras_format.clone(),
+        created_at: time::now(),
+    };
+    sqlx::query(
+        "INSERT INTO assets (id, owner, kind, parent_id, source_job_id, sha256, size, format, \
+         file_name, gaussians, sh_degree, cameras_sha256, cameras_format, created_at) \
+         VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+    )
+    .bind(asset.id.to_string())
+    .bind(&asset.owner)
+    .bind(asset.kind.as_str())
+    .bind(asset.parent_id.map(|u| u.to_string()))
+    .bind(asset.source_job_id.map(|u| u.to_string()))
+    .bind(&asset.sha256)
+    .bind(to_i64(asset.size)?)
+    .bind(&asset.format)
+    .bind(&asset.file_name)
+    .bind(to_i64(asset.gaussians)?)
+    .bind(i64::from(asset.sh_degree))
+    .bind(&asset.cameras_sha256)
+    .bind(&asset.cameras_format)
+    .bind(&asset.created_at)
+    .execute(&mut *conn)
+    .await
+    .map_err(StoreError::from_db)?;
+    Ok(asset)
+}
+
+pub(crate) fn decode_asset(r: &SqliteRow) -> Result<Asset> {
+    let id: String = r.try_get("id")?;
+    let kind: String = r.try_get("kind")?;
+    let sh: i64 = r.try_get("sh_degree")?;
+    Ok(Asset {
+        id: parse_uuid(&id)?,
+        owner: r.try_get("owner")?,
+        kind: AssetKind::parse(&kind)?,
+        parent_id: parse_opt_uuid(r.try_get("parent_id")?)?,
+        source_job_id: parse_opt_uuid(r.try_get("source_job_id")?)?,
+        sha256: r.try_get("sha256")?,
+        size: to_u64(r.try_get("size")?)?,
+        format: r.try_get("format")?,
+        file_name: r.try_get("file_name")?,
+        gaussians: to_u64(r.try_get("gaussians")?)?,
+        sh_degree: u8::try_from(sh).map_err(|_| StoreError::corrupt("sh_degree"))?,
+        cameras_sha256: r.try_get("cameras_sha256")?,
+        cameras_format: r.try_get("cameras_format")?,
+        created_at: r.try_get("created_at")?,
+    })
+}

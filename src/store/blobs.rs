@@ -1,0 +1,139 @@
+//! Content-addressed blobs on disk: `blobs/ab/cdef…` named by the SHA-256 of their bytes (so
+//! names are always server-made), written as temp file in `blobs/tmp` + fsync + rename.
+
+use super::error::{Result, StoreError};
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+use std::fs::{self, File};
+use std::io::{self, Read, Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+
+/// A committed blob: its id (lowercase hex SHA-256) and size in bytes.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct BlobRef {
+    /// Lowercase hex SHA-256 of the bytes; also the blob's name.
+    pub sha256: String,
+    /// Size in bytes.
+    pub size: u64,
+}
+
+/// The blob directory.
+#[derive(Clone, Debug)]
+pub struct BlobStore {
+    root: PathBuf,
+}
+
+impl BlobStore {
+    /// Opens (creating) `root` and `root/tmp`.
+    pub(crate) fn open(root: PathBuf) -> io::Result<Self> {
+        fs::create_dir_all(root.join("tmp"))?;
+        Ok(BlobStore { root })
+    }
+
+    /// A new temporary file in `blobs/tmp` (same file system as the blobs, so [`Self::commit`]
+    /// is a rename). Dropping it without committing deletes it.
+    pub fn temp_file(&self) -> io::Result<tempfile::NamedTempFile> {
+        tempfile::NamedTempFile::new_in(self.root.join("tmp"))
+    }
+
+    /// Hashes the temp file's bytes, fsyncs it and renames it to its content address. Committing
+    /// bytes that are already stored keeps the existing file (idempotent).
+    pub fn commit(&self, mut tmp: tempfile::NamedTempFile) -> io::Result<BlobRef> {
+        tmp.as_file_mut().flush()?;
+        let (sha256, size) = hash_file(tmp.as_file_mut())?;
+        let dest = self.location(&sha256);
+        // An existing file of another size is a truncated leftover: replaced below.
+        if fs::metadata(&dest).is_ok_and(|m| m.len() == size) {
+            return Ok(BlobRef { sha256, size });
+        }
+        tmp.as_file().sync_all()?;
+        let dir = dest.parent().unwrap_or(&self.root).to_path_buf();
+        fs::create_dir_all(&dir)?;
+        tmp.persist(&dest).map_err(|e| e.error)?;
+        sync_dir(&dir)?;
+        Ok(BlobRef { sha256, size })
+    }
+
+    /// Stores `bytes` (temp file + fsync + rename).
+    pub fn put_bytes(&self, bytes: &[u8]) -> io::Result<BlobRef> {
+        let mut tmp = self.temp_file()?;
+        tmp.write_all(bytes)?;
+        self.commit(tmp)
+    }
+
+    /// The path of an existing blob; `Invalid` for anything but 64 lowercase hex digits,
+    /// `NotFound` when no such blob is stored.
+    pub fn path(&self, sha256: &str) -> Result<PathBuf> {
+        validate_id(sha256)?;
+        let p = self.location(sha256);
+        match fs::metadata(&p) {
+            Ok(m) if m.is_file() => Ok(p),
+            Ok(_) => Err(StoreError::NotFound),
+            Err(e) if e.kind() == io::ErrorKind::NotFound => Err(StoreError::NotFound),
+            Err(e) => Err(e.into()),
+        }
+    }
+
+    /// The bytes of a blob.
+    pub fn read(&self, sha256: &str) -> Result<Vec<u8>> {
+        validate_id(sha256)?;
+        match fs::read(self.location(sha256)) {
+            Ok(b) => Ok(b),
+            Err(e) if e.kind() == io::ErrorKind::NotFound => Err(StoreError::NotFound),
+            Err(e) => Err(e.into()),
+        }
+    }
+
+    /// Size of a stored blob (`NotFound` when missing).
+    pub(crate) fn size_of(&self, sha256: &str) -> Result<u64> {
+        Ok(fs::metadata(self.path(sha256)?)?.len())
+    }
+
+    /// Where a (validated) id lives: `root/ab/cdef…`.
+    fn location(&self, sha256: &str) -> PathBuf {
+        let (head, tail) = sha256.split_at(2);
+        self.root.join(head).join(tail)
+    }
+}
+
+/// Whether `id` is 64 lowercase hex digits.
+pub(crate) fn is_blob_id(id: &str) -> bool {
+    id.len() == 64 && id.bytes().all(|c| matches!(c, b'0'..=b'9' | b'a'..=b'f'))
+}
+
+fn validate_id(id: &str) -> Result<()> {
+    if is_blob_id(id) {
+        Ok(())
+    } else {
+        Err(StoreError::invalid(
+            "blob id must be 64 lowercase hex digits",
+        ))
+    }
+}
+
+fn hash_file(f: &mut File) -> io::Result<(String, u64)> {
+    f.seek(SeekFrom::Start(0))?;
+    let mut hasher = Sha256::new();
+    let mut buf = vec![0u8; 1 << 16];
+    let mut size = 0u64;
+    loop {
+        let n = f.read(&mut buf)?;
+        if n == 0 {
+            break;
+        }
+        hasher.update(&buf[..n]);
+        size += n as u64;
+    }
+    Ok((hex::encode(hasher.finalize()), size))
+}
+
+/// Fsyncs a directory so that a rename into it survives a crash (no-op where unsupported).
+pub(crate) fn sync_dir(dir: &Path) -> io::Result<()> {
+    #[cfg(unix)]
+    {
+        File::open(dir)?.sync_all()?;
+    }
+    #[cfg(not(unix))]
+    let _ = dir;
+    Ok(())
+}

@@ -1,0 +1,226 @@
+//! Storage for the service (issue 5): SQLite through sqlx (WAL, 5 s busy timeout, foreign keys,
+//! `synchronous = FULL`, schema in `migrations/`) and content-addressed blobs on disk.
+//!
+//! | file | holds |
+//! |---|---|
+//! | `blobs` | [`BlobStore`]: `blobs/ab/cdef…` by SHA-256, temp file + fsync + rename |
+//! | `crypto` | [`MasterKey`], XChaCha20-Poly1305 for messages at rest |
+//! | `assets` | uploaded and watermarked assets |
+//! | `keys` | each watermarked asset's message (encrypted) |
+//! | `jobs` | the queue: claim with lease, heartbeat, requeue, backoff, dead letter, cancel |
+//! | `publish` | a job's result, exactly once |
+//! | `attribution` | per-Gaussian records, compact and paged, summary, embed report |
+//! | `verifications` | dispute verifications |
+//! | `audit` | append-only hash-chained log |
+//! | `api_keys` | bearer tokens (hashed) and scopes |
+//!
+//! Every write that must not interleave with another runs in a `BEGIN IMMEDIATE` transaction,
+//! so SQLite serializes writers up front and a transaction never fails half-way on a lock upgrade.
+
+pub(crate) mod api_keys;
+mod assets;
+pub(crate) mod attribution;
+mod audit;
+mod blobs;
+pub(crate) mod crypto;
+mod error;
+pub(crate) mod jobs;
+mod keys;
+mod publish;
+mod time;
+mod verifications;
+
+#[cfg(test)]
+mod tests;
+
+pub use api_keys::{ApiKey, Scope, TOKEN_PREFIX};
+pub use assets::{Asset, AssetKind, NewAsset};
+pub use attribution::{AttributionSummary, MAX_ATTRIBUTION_PAGE};
+pub use audit::{AuditEntry, AuditFilter, AuditRow, ChainReport, GENESIS_HASH, MAX_AUDIT_PAGE};
+pub use blobs::{BlobRef, BlobStore};
+pub use crypto::{MASTER_KEY_ENV, MasterKey};
+pub use error::{Result, StoreError};
+pub use jobs::{Claimed, Job, JobCounts, JobState, NewJob, ProgressUpdate};
+pub use verifications::NewVerification;
+
+use serde::Serialize;
+use sqlx::sqlite::{
+    SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteSynchronous,
+};
+use sqlx::{Row, Sqlite, Transaction};
+use std::path::Path;
+use std::sync::Arc;
+use std::time::Duration;
+use uuid::Uuid;
+
+/// Database file name inside the data directory.
+pub const DB_FILE: &str = "splatmark.db";
+/// Blob directory name inside the data directory.
+pub const BLOB_DIR: &str = "blobs";
+
+/// The storage handle: a connection pool and the blob store. Cheap to clone.
+#[derive(Clone)]
+pub struct Store {
+    pool: SqlitePool,
+    inner: Arc<Inner>,
+}
+
+struct Inner {
+    blobs: BlobStore,
+    cipher: crypto::Cipher,
+}
+
+/// Row counts for `/metrics`.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize)]
+pub struct Counts {
+    /// Jobs per state.
+    pub jobs: JobCounts,
+    /// Assets (originals and watermarked).
+    pub assets: u64,
+    /// Watermarked assets.
+    pub watermarked: u64,
+    /// Verifications recorded.
+    pub verifications: u64,
+    /// Audit rows.
+    pub audit_rows: u64,
+}
+
+impl std::fmt::Debug for Store {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Store")
+            .field("blobs", &self.inner.blobs)
+            .finish_non_exhaustive()
+    }
+}
+
+impl Store {
+    /// Opens (creating) `data_dir/splatmark.db` and `data_dir/blobs/`, applies the migrations and
+    /// checks `master` against the key-check value written when the database was created
+    /// (`Crypto` for a different key, so a misconfigured service fails at start, not at verify).
+    pub async fn open(data_dir: &Path, master: MasterKey) -> Result<Store> {
+        std::fs::create_dir_all(data_dir)?;
+        let blobs = BlobStore::open(data_dir.join(BLOB_DIR))?;
+        let options = SqliteConnectOptions::new()
+            .filename(data_dir.join(DB_FILE))
+            .create_if_missing(true)
+            .journal_mode(SqliteJournalMode::Wal)
+            .synchronous(SqliteSynchronous::Full)
+            .busy_timeout(Duration::from_secs(5))
+            .foreign_keys(true);
+        let pool = SqlitePoolOptions::new()
+            .max_connections(8)
+            .connect_with(options)
+            .await?;
+        sqlx::migrate!("./migrations").run(&pool).await?;
+        let store = Store {
+            pool,
+            inner: Arc::new(Inner {
+                blobs,
+                cipher: crypto::Cipher::new(&master),
+            }),
+        };
+        store.check_master_key().await?;
+        Ok(store)
+    }
+
+    /// The blob store.
+    pub fn blobs(&self) -> &BlobStore {
+        &self.inner.blobs
+    }
+
+    /// A trivial query (for `/readyz`).
+    pub async fn ping(&self) -> Result<()> {
+        sqlx::query("SELECT 1").execute(&self.pool).await?;
+        Ok(())
+    }
+
+    /// Jobs by state, assets, verifications and audit rows.
+    pub async fn counts(&self) -> Result<Counts> {
+        let mut c = Counts::default();
+        let rows = sqlx::query("SELECT state, COUNT(*) AS n FROM jobs GROUP BY state")
+            .fetch_all(&self.pool)
+            .await?;
+        for r in rows {
+            let state: String = r.try_get("state")?;
+            let n = to_u64(r.try_get("n")?)?;
+            c.jobs.add(state.parse()?, n);
+        }
+        let r = sqlx::query(
+            "SELECT (SELECT COUNT(*) FROM assets) AS assets, \
+                    (SELECT COUNT(*) FROM assets WHERE kind = 'watermarked') AS watermarked, \
+                    (SELECT COUNT(*) FROM verifications) AS verifications, \
+                    (SELECT COUNT(*) FROM audit) AS audit_rows",
+        )
+        .fetch_one(&self.pool)
+        .await?;
+        c.assets = to_u64(r.try_get("assets")?)?;
+        c.watermarked = to_u64(r.try_get("watermarked")?)?;
+        c.verifications = to_u64(r.try_get("verifications")?)?;
+        c.audit_rows = to_u64(r.try_get("audit_rows")?)?;
+        Ok(c)
+    }
+
+    /// A write transaction that takes SQLite's write lock at once (`BEGIN IMMEDIATE`).
+    pub(crate) async fn begin_immediate(&self) -> Result<Transaction<'static, Sqlite>> {
+        Ok(self.pool.begin_with("BEGIN IMMEDIATE").await?)
+    }
+
+    pub(crate) fn cipher(&self) -> &crypto::Cipher {
+        &self.inner.cipher
+    }
+
+    /// Writes the key-check value on first open; afterwards refuses any other master key.
+    async fn check_master_key(&self) -> Result<()> {
+        let mut tx = self.begin_immediate().await?;
+        let row = sqlx::query("SELECT value FROM meta WHERE key = 'key_check'")
+            .fetch_optional(&mut *tx)
+            .await?;
+        match row {
+            Some(r) => {
+                let value: Vec<u8> = r.try_get("value")?;
+                if value.len() < 24 {
+                    return Err(StoreError::corrupt("meta.key_check is too short"));
+                }
+                let (nonce, ct) = value.split_at(24);
+                let plain = self.cipher().open(nonce, ct, crypto::KEY_CHECK_AAD)?;
+                if plain.as_slice() != crypto::KEY_CHECK_PLAINTEXT {
+                    return Err(StoreError::Crypto);
+                }
+                tx.rollback().await?;
+            }
+            None => {
+                let sealed = self
+                    .cipher()
+                    .seal(crypto::KEY_CHECK_PLAINTEXT, crypto::KEY_CHECK_AAD)?;
+                let mut value = sealed.nonce;
+                value.extend_from_slice(&sealed.ciphertext);
+                sqlx::query("INSERT INTO meta (key, value) VALUES ('key_check', ?)")
+                    .bind(value)
+                    .execute(&mut *tx)
+                    .await?;
+                tx.commit().await?;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A non-negative SQLite integer as `u64`.
+pub(crate) fn to_u64(v: i64) -> Result<u64> {
+    u64::try_from(v).map_err(|_| StoreError::corrupt(format!("negative count {v}")))
+}
+
+/// A `u64` as a SQLite integer (`Invalid` past `i64::MAX`).
+pub(crate) fn to_i64(v: u64) -> Result<i64> {
+    i64::try_from(v).map_err(|_| StoreError::invalid(format!("{v} is too large")))
+}
+
+/// A stored UUID.
+pub(crate) fn parse_uuid(s: &str) -> Result<Uuid> {
+    Uuid::parse_str(s).map_err(|_| StoreError::corrupt(format!("stored id {s:?} is not a UUID")))
+}
+
+/// A stored optional UUID.
+pub(crate) fn parse_opt_uuid(s: Option<String>) -> Result<Option<Uuid>> {
+    s.as_deref().map(parse_uuid).transpose()
+}

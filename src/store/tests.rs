@@ -1,0 +1,1357 @@
+//! Storage tests: each opens its own store in a temp dir.
+
+use super::*;
+use crate::embed::attribution::AttributionRecord;
+use crate::embed::sbag::Role;
+use sqlx::Connection;
+use sqlx::sqlite::{SqliteConnectOptions, SqliteConnection};
+use std::collections::HashSet;
+use std::time::Duration;
+use tempfile::TempDir;
+
+const LONG: Duration = Duration::from_secs(60);
+
+async fn setup() -> (TempDir, Store) {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let store = Store::open(dir.path(), MasterKey::generate())
+        .await
+        .expect("open");
+    (dir, store)
+}
+
+/// A raw connection that bypasses the store (for tampering).
+async fn raw(dir: &TempDir) -> SqliteConnection {
+    let opts = SqliteConnectOptions::new().filename(dir.path().join(DB_FILE));
+    SqliteConnection::connect_with(&opts)
+        .await
+        .expect("raw connection")
+}
+
+async fn scalar(dir: &TempDir, sql: &'static str) -> i64 {
+    let mut c = raw(dir).await;
+    sqlx::query_scalar(sql)
+        .fetch_one(&mut c)
+        .await
+        .expect("scalar")
+}
+
+fn entry(action: &str) -> AuditEntry {
+    AuditEntry::new("tester", action)
+}
+
+fn new_original(store: &Store, content: &[u8]) -> NewAsset {
+    let blob = store.blobs().put_bytes(content).expect("blob");
+    NewAsset {
+        owner: "alice".into(),
+        kind: AssetKind::Original,
+        parent_id: None,
+        source_job_id: None,
+        blob,
+        format: "ply".into(),
+        file_name: Some("scene.ply".into()),
+        gaussians: 10,
+        sh_degree: 3,
+        cameras_blob: None,
+        cameras_format: None,
+    }
+}
+
+async fn original(store: &Store) -> Asset {
+    store
+        .insert_asset(
+            new_original(store, b"original scene bytes"),
+            entry("asset.upload"),
+        )
+        .await
+        .expect("insert original")
+}
+
+/// A message with a distinctive pattern.
+fn message(bits: usize, seed: u64) -> Vec<bool> {
+    let mut x = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+    (0..bits)
+        .map(|_| {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            x & 1 == 1
+        })
+        .collect()
+}
+
+fn new_job(asset: Uuid, msg: Vec<bool>, key: Option<&str>, max_attempts: u32) -> NewJob {
+    NewJob {
+        asset_id: asset,
+        owner: "alice".into(),
+        bits: msg.len() as u32,
+        message: msg,
+        options: serde_json::json!({ "steps": 100 }),
+        idempotency_key: key.map(str::to_owned),
+        max_attempts,
+    }
+}
+
+async fn enqueue(store: &Store, asset: Uuid, max_attempts: u32) -> Job {
+    store
+        .enqueue(
+            new_job(asset, message(32, 7), None, max_attempts),
+            entry("job.enqueue"),
+        )
+        .await
+        .expect("enqueue")
+        .0
+}
+
+/// `n` records with every role, seed kind and a NaN, as the pipeline would make them.
+fn records(n: u32) -> Vec<AttributionRecord> {
+    (0..n)
+        .map(|i| {
+            let f = i as f32;
+            let role = match i % 5 {
+                0 => Role::Carrier,
+                1 | 2 => Role::Compensator,
+                _ => Role::Untouched,
+            };
+            AttributionRecord {
+                index: i,
+                role,
+                parent: i / 3,
+                child: (i % 3) as u8,
+                r: [f * 0.1, 1.0 / (f + 1.0), -f],
+                uncertainty: [0.1, 0.2, f32::MIN_POSITIVE],
+                quality: [f.sqrt(), f32::MAX, -0.0],
+                utility: if i == 7 { f32::NAN } else { (f * 0.37).sin() },
+                visibility: (f * 0.11).cos(),
+                feasible: i % 2 == 0,
+                seed: match i % 3 {
+                    0 => None,
+                    1 => Some(false),
+                    _ => Some(true),
+                },
+                mask_wm: [1.0, 0.5, 0.0, 0.25, f],
+                mask_vis: [0.0, 1.0, 1.0, 0.125, -f],
+                wm_grad_share: (i % 4 != 0).then_some(f * 1e-6),
+            }
+        })
+        .collect()
+}
+
+/// Bit-exact identity of a record (NaN-safe).
+fn bits_of(r: &AttributionRecord) -> Vec<u64> {
+    let mut v = vec![
+        u64::from(r.index),
+        u64::from(r.parent),
+        u64::from(r.child),
+        crate::store::attribution::role_code(r.role) as u64,
+        u64::from(r.feasible),
+        match r.seed {
+            None => 0,
+            Some(false) => 1,
+            Some(true) => 2,
+        },
+        r.wm_grad_share.map_or(u64::MAX, |x| u64::from(x.to_bits())),
+    ];
+    let floats = r.r.iter().chain(&r.uncertainty).chain(&r.quality);
+    let floats = floats
+        .chain([&r.utility, &r.visibility])
+        .chain(&r.mask_wm)
+        .chain(&r.mask_vis);
+    v.extend(floats.map(|x| u64::from(x.to_bits())));
+    v
+}
+
+fn watermarked(store: &Store, parent: Uuid, gaussians: u64, content: &[u8]) -> NewAsset {
+    NewAsset {
+        kind: AssetKind::Watermarked,
+        parent_id: Some(parent),
+        gaussians,
+        ..new_original(store, content)
+    }
+}
+
+async fn publish(
+    store: &Store,
+    c: &Claimed,
+    recs: &[AttributionRecord],
+) -> Result<Asset, StoreError> {
+    let asset = watermarked(
+        store,
+        c.job.asset_id,
+        recs.len() as u64,
+        b"watermarked scene",
+    );
+    store
+        .publish_result(
+            c.job.id,
+            c.lease_token,
+            asset,
+            &c.message,
+            recs,
+            serde_json::json!({ "psnr": 41.5 }),
+            entry("watermark.publish"),
+        )
+        .await
+}
+
+fn all_files_bytes(dir: &TempDir) -> Vec<u8> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir(dir.path()).expect("read_dir").flatten() {
+        if e.path().is_file() {
+            out.extend(std::fs::read(e.path()).expect("read"));
+        }
+    }
+    out
+}
+
+fn contains(hay: &[u8], needle: &[u8]) -> bool {
+    hay.windows(needle.len()).any(|w| w == needle)
+}
+
+// ---- blobs -------------------------------------------------------------------------------
+
+#[tokio::test]
+async fn blob_commit_is_content_addressed_and_idempotent() {
+    let (dir, store) = setup().await;
+    let a = store.blobs().put_bytes(b"hello splats").expect("put");
+
+    assert_eq!(
+        a.sha256,
+        hex::encode(<sha2::Sha256 as sha2::Digest>::digest(b"hello splats"))
+    );
+    assert_eq!(a.size, 12);
+    let path = store.blobs().path(&a.sha256).expect("path");
+    assert_eq!(
+        path,
+        dir.path()
+            .join("blobs")
+            .join(&a.sha256[..2])
+            .join(&a.sha256[2..])
+    );
+    // The same bytes through a temp file: same id, one file, temp dir empty.
+    let mut tmp = store.blobs().temp_file().expect("tmp");
+    std::io::Write::write_all(&mut tmp, b"hello splats").expect("write");
+    let b = store.blobs().commit(tmp).expect("commit");
+    assert_eq!(a, b);
+    assert_eq!(
+        store.blobs().read(&a.sha256).expect("read"),
+        b"hello splats"
+    );
+    let tmp_dir = dir.path().join("blobs/tmp");
+    assert_eq!(std::fs::read_dir(tmp_dir).expect("tmp dir").count(), 0);
+    let other = store.blobs().put_bytes(b"other").expect("put");
+    assert_ne!(other.sha256, a.sha256);
+}
+
+#[tokio::test]
+async fn bad_blob_ids_are_rejected() {
+    let (_dir, store) = setup().await;
+    let good = store.blobs().put_bytes(b"x").expect("put");
+    for bad in [
+        "../../etc/passwd",
+        "",
+        &good.sha256[..63],
+        &good.sha256.to_uppercase(),
+        &format!("{}/", &good.sha256[..63]),
+    ] {
+        assert!(
+            matches!(store.blobs().path(bad), Err(StoreError::Invalid(_))),
+            "{bad:?}"
+        );
+        assert!(
+            matches!(store.blobs().read(bad), Err(StoreError::Invalid(_))),
+            "{bad:?}"
+        );
+    }
+    let missing = "0".repeat(64);
+    assert!(matches!(
+        store.blobs().path(&missing),
+        Err(StoreError::NotFound)
+    ));
+    assert!(matches!(
+        store.blobs().read(&missing),
+        Err(StoreError::NotFound)
+    ));
+}
+
+// ---- master key and keys at rest -----------------------------------------------------------
+
+#[tokio::test]
+async fn master_key_roundtrip_and_wrong_key_fails() {
+    let k = MasterKey::generate();
+    let hex = k.to_hex();
+    assert_eq!(hex.len(), 64);
+    assert_eq!(MasterKey::from_hex(&hex).expect("parse").to_hex(), hex);
+    assert_eq!(format!("{k:?}"), "MasterKey(***)");
+    assert!(matches!(
+        MasterKey::from_hex("zz"),
+        Err(StoreError::Invalid(_))
+    ));
+    assert!(matches!(
+        MasterKey::from_hex(&hex[..62]),
+        Err(StoreError::Invalid(_))
+    ));
+
+    let c1 = crypto::Cipher::new(&k);
+    let c2 = crypto::Cipher::new(&MasterKey::generate());
+    let msg = message(48, 3);
+    let sealed = c1.seal_bits(&msg, b"asset-1").expect("seal");
+    assert_eq!(
+        c1.open_bits(&sealed.nonce, &sealed.ciphertext, b"asset-1")
+            .expect("open"),
+        msg
+    );
+    assert!(matches!(
+        c2.open_bits(&sealed.nonce, &sealed.ciphertext, b"asset-1"),
+        Err(StoreError::Crypto)
+    ));
+    assert!(matches!(
+        c1.open_bits(&sealed.nonce, &sealed.ciphertext, b"asset-2"),
+        Err(StoreError::Crypto)
+    ));
+
+    // A store refuses to open under another master key.
+    let dir = tempfile::tempdir().expect("tempdir");
+    drop(
+        Store::open(dir.path(), k.clone())
+            .await
+            .expect("first open"),
+    );
+    assert!(matches!(
+        Store::open(dir.path(), MasterKey::generate()).await,
+        Err(StoreError::Crypto)
+    ));
+    Store::open(dir.path(), k)
+        .await
+        .expect("reopen with the right key");
+}
+
+#[tokio::test]
+async fn master_key_file_is_created_0600_and_reloaded() {
+    if std::env::var_os(MASTER_KEY_ENV).is_some() {
+        eprintln!("SKIPPED: {MASTER_KEY_ENV} is set");
+        return;
+    }
+    let dir = tempfile::tempdir().expect("tempdir");
+    let file = dir.path().join("conf/master.key");
+    let k1 = MasterKey::load_or_create(&file).expect("create");
+    let k2 = MasterKey::load_or_create(&file).expect("load");
+    assert_eq!(k1.to_hex(), k2.to_hex());
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        let mode = std::fs::metadata(&file).expect("meta").permissions().mode();
+        assert_eq!(mode & 0o777, 0o600);
+    }
+    std::fs::write(&file, "not hex").expect("write");
+    assert!(matches!(
+        MasterKey::load_or_create(&file),
+        Err(StoreError::Invalid(_))
+    ));
+}
+
+#[tokio::test]
+async fn messages_are_never_stored_in_plaintext() {
+    let (dir, store) = setup().await;
+    let a = original(&store).await;
+    let msg = message(64, 99);
+    store
+        .enqueue(new_job(a.id, msg.clone(), None, 3), entry("job.enqueue"))
+        .await
+        .expect("enqueue");
+    let c = store
+        .claim("w1", LONG)
+        .await
+        .expect("claim")
+        .expect("a job");
+    assert_eq!(c.message, msg);
+    let wm = publish(&store, &c, &records(10)).await.expect("publish");
+    assert_eq!(
+        store.message_of(wm.id).await.expect("message"),
+        Some(msg.clone())
+    );
+
+    let ascii = crypto::bits_to_ascii(&msg);
+    let packed: Vec<u8> = msg
+        .chunks(8)
+        .map(|b| b.iter().fold(0u8, |acc, &x| acc << 1 | u8::from(x)))
+        .collect();
+    let hex_lower = hex::encode(&packed);
+    let hex_upper = hex_lower.to_uppercase();
+    let bytes = all_files_bytes(&dir);
+    assert!(bytes.len() > 4096, "database files found");
+    for needle in [
+        &ascii[..],
+        &packed[..],
+        hex_lower.as_bytes(),
+        hex_upper.as_bytes(),
+    ] {
+        assert!(
+            !contains(&bytes, needle),
+            "message found in the database files"
+        );
+    }
+    // Sanity of the grep itself: the owner name is there in plaintext.
+    assert!(contains(&bytes, b"alice"));
+}
+
+#[tokio::test]
+async fn tampered_key_ciphertext_is_a_crypto_error() {
+    let (dir, store) = setup().await;
+    let a = original(&store).await;
+    enqueue(&store, a.id, 3).await;
+    let c = store
+        .claim("w1", LONG)
+        .await
+        .expect("claim")
+        .expect("a job");
+    let wm = publish(&store, &c, &records(10)).await.expect("publish");
+    let mut conn = raw(&dir).await;
+    sqlx::query(
+        "UPDATE keys SET ciphertext = substr(ciphertext, 1, 5) || x'00' || substr(ciphertext, 7)",
+    )
+    .execute(&mut conn)
+    .await
+    .expect("tamper");
+    assert!(matches!(
+        store.message_of(wm.id).await,
+        Err(StoreError::Crypto)
+    ));
+    assert!(matches!(
+        store.all_messages().await,
+        Err(StoreError::Crypto)
+    ));
+}
+
+// ---- assets --------------------------------------------------------------------------------
+
+#[tokio::test]
+async fn bad_asset_input_changes_nothing() {
+    let (dir, store) = setup().await;
+    let good = new_original(&store, b"scene");
+    let mut missing = good.clone();
+    missing.blob.sha256 = "ab".repeat(32);
+    let mut wrong_size = good.clone();
+    wrong_size.blob.size += 1;
+    let cases = vec![
+        NewAsset {
+            format: "obj".into(),
+            ..good.clone()
+        },
+        NewAsset {
+            owner: String::new(),
+            ..good.clone()
+        },
+        NewAsset {
+            sh_degree: 4,
+            ..good.clone()
+        },
+        NewAsset {
+            parent_id: Some(Uuid::new_v4()),
+            ..good.clone()
+        },
+        NewAsset {
+            cameras_format: Some("inria".into()),
+            ..good.clone()
+        },
+        NewAsset {
+            file_name: Some("a\nb".into()),
+            ..good.clone()
+        },
+        missing,
+        wrong_size,
+    ];
+    for (i, bad) in cases.into_iter().enumerate() {
+        let r = store.insert_asset(bad, entry("asset.upload")).await;
+        assert!(matches!(r, Err(StoreError::Invalid(_))), "case {i}: {r:?}");
+    }
+    assert_eq!(scalar(&dir, "SELECT COUNT(*) FROM assets").await, 0);
+    assert_eq!(scalar(&dir, "SELECT COUNT(*) FROM audit").await, 0);
+
+    let a = store
+        .insert_asset(good, entry("asset.upload"))
+        .await
+        .expect("insert");
+    assert_eq!(store.get_asset(a.id).await.expect("get"), Some(a.clone()));
+    assert_eq!(store.get_asset(Uuid::new_v4()).await.expect("get"), None);
+    let (rows, _) = store
+        .audit_query(&AuditFilter {
+            asset_id: Some(a.id),
+            ..Default::default()
+        })
+        .await
+        .expect("audit");
+    assert_eq!(rows.len(), 1);
+    assert_eq!(rows[0].action, "asset.upload");
+    assert!(time::is_timestamp(&a.created_at));
+}
+
+// ---- jobs ----------------------------------------------------------------------------------
+
+#[tokio::test]
+async fn enqueue_is_idempotent_and_conflicts_on_another_body() {
+    let (dir, store) = setup().await;
+    let a = original(&store).await;
+    let j = new_job(a.id, message(32, 1), Some("key-1"), 3);
+    let (first, created) = store
+        .enqueue(j.clone(), entry("job.enqueue"))
+        .await
+        .expect("enqueue");
+    assert!(created);
+    assert_eq!(first.state, JobState::Queued);
+    let (again, created) = store
+        .enqueue(j.clone(), entry("job.enqueue"))
+        .await
+        .expect("again");
+    assert!(!created);
+    assert_eq!(again.id, first.id);
+    let found = store
+        .job_by_idempotency_key("alice", "key-1")
+        .await
+        .expect("lookup");
+    assert_eq!(found.map(|j| j.id), Some(first.id));
+
+    let other_message = NewJob {
+        message: message(32, 2),
+        ..j.clone()
+    };
+    let other_options = NewJob {
+        options: serde_json::json!({ "steps": 5 }),
+        ..j.clone()
+    };
+    for bad in [other_message, other_options] {
+        let r = store.enqueue(bad, entry("job.enqueue")).await;
+        assert!(matches!(r, Err(StoreError::Conflict(_))), "{r:?}");
+    }
+    // Another owner may use the same key.
+    let bob = NewJob {
+        owner: "bob".into(),
+        ..j.clone()
+    };
+    let (b, created) = store.enqueue(bob, entry("job.enqueue")).await.expect("bob");
+    assert!(created);
+    assert_ne!(b.id, first.id);
+    assert_eq!(scalar(&dir, "SELECT COUNT(*) FROM jobs").await, 2);
+    assert_eq!(
+        scalar(
+            &dir,
+            "SELECT COUNT(*) FROM audit WHERE action = 'job.enqueue'"
+        )
+        .await,
+        2
+    );
+
+    // Bad input writes nothing.
+    let bad_bits = NewJob {
+        bits: 31,
+        ..j.clone()
+    };
+    let unknown_asset = NewJob {
+        asset_id: Uuid::new_v4(),
+        idempotency_key: None,
+        ..j.clone()
+    };
+    let no_attempts = NewJob {
+        max_attempts: 0,
+        ..j
+    };
+    assert!(matches!(
+        store.enqueue(bad_bits, entry("x")).await,
+        Err(StoreError::Invalid(_))
+    ));
+    assert!(matches!(
+        store.enqueue(unknown_asset, entry("x")).await,
+        Err(StoreError::NotFound)
+    ));
+    assert!(matches!(
+        store.enqueue(no_attempts, entry("x")).await,
+        Err(StoreError::Invalid(_))
+    ));
+    assert_eq!(scalar(&dir, "SELECT COUNT(*) FROM jobs").await, 2);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn each_job_is_claimed_by_one_worker_only() {
+    let (_dir, store) = setup().await;
+    let a = original(&store).await;
+    const N: usize = 24;
+    let mut ids = HashSet::new();
+    for _ in 0..N {
+        ids.insert(enqueue(&store, a.id, 3).await.id);
+    }
+    let claimer = |name: &'static str| {
+        let store = store.clone();
+        tokio::spawn(async move {
+            let mut got = Vec::new();
+            while let Some(c) = store.claim(name, LONG).await.expect("claim") {
+                got.push(c.job.id);
+                tokio::task::yield_now().await;
+            }
+            got
+        })
+    };
+    let (w1, w2) = (claimer("w1"), claimer("w2"));
+    let (g1, g2) = (w1.await.expect("w1"), w2.await.expect("w2"));
+    let all: Vec<Uuid> = g1.iter().chain(&g2).copied().collect();
+    let unique: HashSet<Uuid> = all.iter().copied().collect();
+    assert_eq!(
+        all.len(),
+        N,
+        "every job claimed exactly once ({} + {})",
+        g1.len(),
+        g2.len()
+    );
+    assert_eq!(unique, ids);
+    let counts = store.counts().await.expect("counts");
+    assert_eq!(counts.jobs.running, N as u64);
+    assert_eq!(counts.jobs.queued, 0);
+}
+
+#[tokio::test]
+async fn heartbeat_records_progress_and_refuses_a_stale_token() {
+    let (_dir, store) = setup().await;
+    let a = original(&store).await;
+    let job = enqueue(&store, a.id, 3).await;
+    assert!(
+        store
+            .claim("w1", LONG)
+            .await
+            .expect("claim")
+            .is_some_and(|c| c.job.id == job.id)
+    );
+    let c = store.get_job(job.id).await.expect("get").expect("job");
+    assert_eq!(c.state, JobState::Running);
+    assert_eq!(c.attempts, 1);
+    let r = store.heartbeat(job.id, Uuid::new_v4(), LONG, None).await;
+    assert!(matches!(r, Err(StoreError::LeaseLost)));
+}
+
+#[tokio::test]
+async fn heartbeat_updates_lease_and_progress() {
+    let (_dir, store) = setup().await;
+    let a = original(&store).await;
+    enqueue(&store, a.id, 3).await;
+    let c = store
+        .claim("w1", Duration::from_secs(1))
+        .await
+        .expect("claim")
+        .expect("job");
+    let before = c.job.lease_expires_at.clone().expect("lease");
+    let p = ProgressUpdate {
+        phase: "finetune".into(),
+        step: 40,
+        total: 100,
+        eta_seconds: Some(12.5),
+    };
+    store
+        .heartbeat(c.job.id, c.lease_token, LONG, Some(&p))
+        .await
+        .expect("heartbeat");
+    let j = store.get_job(c.job.id).await.expect("get").expect("job");
+    assert_eq!(j.phase.as_deref(), Some("finetune"));
+    assert_eq!((j.step, j.total, j.eta_seconds), (40, 100, Some(12.5)));
+    assert!(j.lease_expires_at.expect("lease") > before);
+}
+
+#[tokio::test]
+async fn expired_lease_is_requeued_then_claimable_and_the_old_token_is_dead() {
+    let (dir, store) = setup().await;
+    let a = original(&store).await;
+    let job = enqueue(&store, a.id, 3).await;
+    let first = store
+        .claim("w1", Duration::from_millis(30))
+        .await
+        .expect("claim")
+        .expect("job");
+    assert_eq!(
+        store.requeue_expired().await.expect("requeue"),
+        0,
+        "lease still valid"
+    );
+    tokio::time::sleep(Duration::from_millis(80)).await;
+    assert_eq!(store.requeue_expired().await.expect("requeue"), 1);
+    let j = store.get_job(job.id).await.expect("get").expect("job");
+    assert_eq!(j.state, JobState::Queued);
+    assert!(
+        j.error
+            .as_deref()
+            .is_some_and(|e| e.contains("lease expired"))
+    );
+    let second = store
+        .claim("w2", LONG)
+        .await
+        .expect("claim")
+        .expect("job again");
+    assert_eq!(second.job.id, job.id);
+    assert_eq!(second.job.attempts, 2);
+    assert_ne!(second.lease_token, first.lease_token);
+    let r = store.heartbeat(job.id, first.lease_token, LONG, None).await;
+    assert!(matches!(r, Err(StoreError::LeaseLost)));
+    assert!(matches!(
+        store.fail(job.id, first.lease_token, "late").await,
+        Err(StoreError::LeaseLost)
+    ));
+    store
+        .heartbeat(job.id, second.lease_token, LONG, None)
+        .await
+        .expect("new holder");
+    assert_eq!(
+        scalar(
+            &dir,
+            "SELECT COUNT(*) FROM audit WHERE action = 'job.requeue'"
+        )
+        .await,
+        1
+    );
+}
+
+#[tokio::test]
+async fn expired_lease_on_the_last_attempt_is_dead() {
+    let (_dir, store) = setup().await;
+    let a = original(&store).await;
+    let job = enqueue(&store, a.id, 1).await;
+    store
+        .claim("w1", Duration::from_millis(20))
+        .await
+        .expect("claim")
+        .expect("job");
+    tokio::time::sleep(Duration::from_millis(60)).await;
+    assert_eq!(store.requeue_expired().await.expect("requeue"), 1);
+    let j = store.get_job(job.id).await.expect("get").expect("job");
+    assert_eq!(j.state, JobState::Dead);
+    assert!(j.error.is_some());
+    assert!(store.claim("w2", LONG).await.expect("claim").is_none());
+}
+
+#[tokio::test]
+async fn failures_back_off_then_die_keeping_the_error() {
+    let (dir, store) = setup().await;
+    assert_eq!(jobs::backoff(1), Duration::from_secs(5));
+    assert_eq!(jobs::backoff(2), Duration::from_secs(10));
+    assert_eq!(jobs::backoff(4), Duration::from_secs(40));
+    assert_eq!(jobs::backoff(8), Duration::from_secs(600));
+    assert_eq!(jobs::backoff(1000), Duration::from_secs(600));
+
+    let a = original(&store).await;
+    let job = enqueue(&store, a.id, 2).await;
+    let c = store.claim("w1", LONG).await.expect("claim").expect("job");
+    let state = store
+        .fail(job.id, c.lease_token, "out of memory")
+        .await
+        .expect("fail");
+    assert_eq!(state, JobState::Failed);
+    let j = store.get_job(job.id).await.expect("get").expect("job");
+    assert_eq!(j.state, JobState::Failed);
+    assert_eq!(j.error.as_deref(), Some("out of memory"));
+    assert!(j.not_before > j.updated_at, "backoff in the future");
+    assert!(
+        store.claim("w1", LONG).await.expect("claim").is_none(),
+        "still backing off"
+    );
+    // The same token cannot fail it twice.
+    assert!(matches!(
+        store.fail(job.id, c.lease_token, "x").await,
+        Err(StoreError::LeaseLost)
+    ));
+
+    // Let the backoff pass.
+    let mut conn = raw(&dir).await;
+    sqlx::query("UPDATE jobs SET not_before = '2000-01-01T00:00:00.000Z'")
+        .execute(&mut conn)
+        .await
+        .expect("rewind");
+    let c2 = store
+        .claim("w2", LONG)
+        .await
+        .expect("claim")
+        .expect("retry");
+    assert_eq!(c2.job.attempts, 2);
+    let state = store
+        .fail(job.id, c2.lease_token, "out of memory again")
+        .await
+        .expect("fail");
+    assert_eq!(state, JobState::Dead);
+    let j = store.get_job(job.id).await.expect("get").expect("job");
+    assert_eq!(j.state, JobState::Dead);
+    assert_eq!(j.error.as_deref(), Some("out of memory again"));
+    sqlx::query("UPDATE jobs SET not_before = '2000-01-01T00:00:00.000Z'")
+        .execute(&mut conn)
+        .await
+        .expect("rewind");
+    assert!(
+        store.claim("w1", LONG).await.expect("claim").is_none(),
+        "dead jobs stay dead"
+    );
+    assert_eq!(
+        scalar(&dir, "SELECT COUNT(*) FROM audit WHERE action = 'job.fail'").await,
+        1
+    );
+    assert_eq!(
+        scalar(&dir, "SELECT COUNT(*) FROM audit WHERE action = 'job.dead'").await,
+        1
+    );
+    assert_eq!(store.counts().await.expect("counts").jobs.dead, 1);
+}
+
+#[tokio::test]
+async fn cancel_queued_and_running_jobs() {
+    let (_dir, store) = setup().await;
+    let a = original(&store).await;
+    let queued = enqueue(&store, a.id, 3).await;
+    let cancelled = store
+        .cancel(queued.id, entry("job.cancel"))
+        .await
+        .expect("cancel");
+    assert_eq!(cancelled.state, JobState::Cancelled);
+    assert!(store.claim("w1", LONG).await.expect("claim").is_none());
+    // Idempotent.
+    assert_eq!(
+        store
+            .cancel(queued.id, entry("job.cancel"))
+            .await
+            .expect("again")
+            .state,
+        JobState::Cancelled
+    );
+
+    let running = enqueue(&store, a.id, 3).await;
+    let c = store.claim("w1", LONG).await.expect("claim").expect("job");
+    assert_eq!(c.job.id, running.id);
+    store
+        .cancel(running.id, entry("job.cancel"))
+        .await
+        .expect("cancel running");
+    let r = store.heartbeat(running.id, c.lease_token, LONG, None).await;
+    assert!(matches!(r, Err(StoreError::LeaseLost)));
+    assert!(matches!(
+        publish(&store, &c, &records(10)).await,
+        Err(StoreError::LeaseLost)
+    ));
+
+    let done = enqueue(&store, a.id, 3).await;
+    let c = store.claim("w1", LONG).await.expect("claim").expect("job");
+    publish(&store, &c, &records(10)).await.expect("publish");
+    let r = store.cancel(done.id, entry("job.cancel")).await;
+    assert!(matches!(r, Err(StoreError::Conflict(_))), "{r:?}");
+    let r = store.cancel(Uuid::new_v4(), entry("job.cancel")).await;
+    assert!(matches!(r, Err(StoreError::NotFound)));
+}
+
+// ---- publish -------------------------------------------------------------------------------
+
+#[tokio::test]
+async fn publish_result_is_exactly_once() {
+    let (dir, store) = setup().await;
+    let a = original(&store).await;
+    let job = enqueue(&store, a.id, 3).await;
+    let c = store.claim("w1", LONG).await.expect("claim").expect("job");
+    let recs = records(30);
+    let wm = publish(&store, &c, &recs).await.expect("publish");
+    assert_eq!(wm.kind, AssetKind::Watermarked);
+    assert_eq!(wm.parent_id, Some(a.id));
+    assert_eq!(wm.source_job_id, Some(job.id));
+    let j = store.get_job(job.id).await.expect("get").expect("job");
+    assert_eq!(j.state, JobState::Done);
+    assert_eq!(j.result_asset_id, Some(wm.id));
+    assert_eq!(j.lease_expires_at, None);
+
+    // Again with the same token: nothing duplicated.
+    assert!(matches!(
+        publish(&store, &c, &recs).await,
+        Err(StoreError::LeaseLost)
+    ));
+    assert!(matches!(
+        store.heartbeat(job.id, c.lease_token, LONG, None).await,
+        Err(StoreError::LeaseLost)
+    ));
+    assert_eq!(scalar(&dir, "SELECT COUNT(*) FROM assets").await, 2);
+    assert_eq!(scalar(&dir, "SELECT COUNT(*) FROM keys").await, 1);
+    assert_eq!(scalar(&dir, "SELECT COUNT(*) FROM attribution").await, 30);
+    assert_eq!(
+        scalar(
+            &dir,
+            "SELECT COUNT(*) FROM audit WHERE action = 'watermark.publish'"
+        )
+        .await,
+        1
+    );
+    assert_eq!(store.watermarked_of(a.id).await.expect("wm").len(), 1);
+    assert_eq!(
+        store.message_of(wm.id).await.expect("msg"),
+        Some(c.message.clone())
+    );
+    assert_eq!(store.message_of(a.id).await.expect("msg"), None);
+    let all = store.all_messages().await.expect("all");
+    assert_eq!(all, vec![(wm.id, c.message.clone())]);
+    assert_eq!(
+        store.report_of(wm.id).await.expect("report"),
+        Some(serde_json::json!({ "psnr": 41.5 }))
+    );
+    assert_eq!(store.report_of(a.id).await.expect("report"), None);
+    let counts = store.counts().await.expect("counts");
+    assert_eq!(
+        (counts.assets, counts.watermarked, counts.jobs.done),
+        (2, 1, 1)
+    );
+}
+
+#[tokio::test]
+async fn publish_after_the_lease_was_lost_writes_nothing() {
+    let (dir, store) = setup().await;
+    let a = original(&store).await;
+    enqueue(&store, a.id, 3).await;
+    let slow = store
+        .claim("slow", Duration::from_millis(20))
+        .await
+        .expect("claim")
+        .expect("job");
+    tokio::time::sleep(Duration::from_millis(60)).await;
+    assert_eq!(store.requeue_expired().await.expect("requeue"), 1);
+    // Lost before anyone re-claimed it...
+    assert!(matches!(
+        publish(&store, &slow, &records(10)).await,
+        Err(StoreError::LeaseLost)
+    ));
+    let fast = store
+        .claim("fast", LONG)
+        .await
+        .expect("claim")
+        .expect("job");
+    // ...and after.
+    assert!(matches!(
+        publish(&store, &slow, &records(10)).await,
+        Err(StoreError::LeaseLost)
+    ));
+    assert_eq!(scalar(&dir, "SELECT COUNT(*) FROM assets").await, 1);
+    assert_eq!(scalar(&dir, "SELECT COUNT(*) FROM keys").await, 0);
+    assert_eq!(scalar(&dir, "SELECT COUNT(*) FROM attribution").await, 0);
+    let wm = publish(&store, &fast, &records(10))
+        .await
+        .expect("the holder publishes");
+    assert_eq!(store.watermarked_of(a.id).await.expect("wm"), vec![wm]);
+}
+
+#[tokio::test]
+async fn a_publish_failing_half_way_rolls_back_everything() {
+    let (dir, store) = setup().await;
+    let a = original(&store).await;
+    let job = enqueue(&store, a.id, 3).await;
+    let c = store.claim("w1", LONG).await.expect("claim").expect("job");
+    let mut recs = records(600);
+    recs[599].index = 3; // duplicate index: fails in the second INSERT batch
+    let r = publish(&store, &c, &recs).await;
+    assert!(matches!(r, Err(StoreError::Conflict(_))), "{r:?}");
+    let short = NewAsset {
+        gaussians: 11,
+        ..watermarked(&store, a.id, 11, b"w")
+    };
+    let r = store
+        .publish_result(
+            job.id,
+            c.lease_token,
+            short,
+            &c.message,
+            &records(10),
+            serde_json::Value::Null,
+            entry("watermark.publish"),
+        )
+        .await;
+    assert!(matches!(r, Err(StoreError::Invalid(_))), "{r:?}");
+    let r = store
+        .publish_result(
+            job.id,
+            c.lease_token,
+            watermarked(&store, a.id, 10, b"w"),
+            &c.message[..31],
+            &records(10),
+            serde_json::Value::Null,
+            entry("watermark.publish"),
+        )
+        .await;
+    assert!(matches!(r, Err(StoreError::Invalid(_))), "{r:?}");
+    assert_eq!(scalar(&dir, "SELECT COUNT(*) FROM assets").await, 1);
+    assert_eq!(scalar(&dir, "SELECT COUNT(*) FROM keys").await, 0);
+    assert_eq!(scalar(&dir, "SELECT COUNT(*) FROM attribution").await, 0);
+    let j = store.get_job(job.id).await.expect("get").expect("job");
+    assert_eq!(j.state, JobState::Running);
+    publish(&store, &c, &records(600))
+        .await
+        .expect("a correct publish still works");
+}
+
+// ---- attribution ---------------------------------------------------------------------------
+
+#[tokio::test]
+async fn attribution_roundtrips_exactly_pages_and_summarises() {
+    let (_dir, store) = setup().await;
+    let a = original(&store).await;
+    enqueue(&store, a.id, 3).await;
+    let c = store.claim("w1", LONG).await.expect("claim").expect("job");
+    let recs = records(2500);
+    let wm = publish(&store, &c, &recs).await.expect("publish");
+
+    let mut got = Vec::new();
+    let mut cursor = None;
+    let mut pages = 0;
+    loop {
+        let (page, next) = store
+            .attribution_page(wm.id, None, cursor, 1000)
+            .await
+            .expect("page");
+        pages += 1;
+        got.extend(page);
+        match next {
+            Some(n) => cursor = Some(n),
+            None => break,
+        }
+    }
+    assert_eq!(pages, 3);
+    assert_eq!(got.len(), recs.len());
+    for (g, r) in got.iter().zip(&recs) {
+        assert_eq!(bits_of(g), bits_of(r), "record {}", r.index);
+    }
+    assert!(got[7].utility.is_nan());
+
+    let carriers: Vec<&AttributionRecord> =
+        recs.iter().filter(|r| r.role == Role::Carrier).collect();
+    let (p1, next) = store
+        .attribution_page(wm.id, Some(Role::Carrier), None, 300)
+        .await
+        .expect("carriers");
+    assert_eq!(p1.len(), 300);
+    assert!(p1.iter().all(|r| r.role == Role::Carrier));
+    let (p2, end) = store
+        .attribution_page(wm.id, Some(Role::Carrier), next, 300)
+        .await
+        .expect("carriers 2");
+    assert_eq!(p1.len() + p2.len(), carriers.len());
+    assert_eq!(end, None);
+    assert_eq!(p2.last().map(|r| r.index), carriers.last().map(|r| r.index));
+    assert!(matches!(
+        store.attribution_page(Uuid::new_v4(), None, None, 10).await,
+        Err(StoreError::NotFound)
+    ));
+
+    let s = store.attribution_summary(wm.id).await.expect("summary");
+    let count = |role| recs.iter().filter(|r| r.role == role).count() as u64;
+    assert_eq!(s.gaussians, 2500);
+    assert_eq!(s.carriers, count(Role::Carrier));
+    assert_eq!(s.compensators, count(Role::Compensator));
+    assert_eq!(s.untouched, count(Role::Untouched));
+    assert_eq!(
+        s.distinct_parents,
+        recs.iter().map(|r| r.parent).collect::<HashSet<_>>().len() as u64
+    );
+    assert_eq!(
+        s.feasible,
+        recs.iter().filter(|r| r.feasible).count() as u64
+    );
+    let share: f64 = carriers
+        .iter()
+        .filter_map(|r| r.wm_grad_share)
+        .map(f64::from)
+        .sum();
+    let got_share = s.carrier_wm_grad_share_sum.expect("share");
+    assert!(
+        (got_share - share).abs() <= 1e-9 * share.abs().max(1.0),
+        "{got_share} vs {share}"
+    );
+    let mean = |it: Vec<f32>| it.iter().map(|&x| f64::from(x)).sum::<f64>() / it.len() as f64;
+    let cu = mean(
+        carriers
+            .iter()
+            .map(|r| r.utility)
+            .filter(|x| !x.is_nan())
+            .collect(),
+    );
+    let ov = mean(
+        recs.iter()
+            .filter(|r| r.role != Role::Carrier)
+            .map(|r| r.visibility)
+            .collect(),
+    );
+    assert!((s.carrier_mean_utility.expect("cu") - cu).abs() < 1e-9);
+    assert!((s.other_mean_visibility.expect("ov") - ov).abs() < 1e-9);
+}
+
+// ---- audit ---------------------------------------------------------------------------------
+
+#[tokio::test]
+async fn audit_chain_verifies_and_tampering_is_found() {
+    let (dir, store) = setup().await;
+    let asset = Uuid::new_v4();
+    for i in 0..6 {
+        let mut e = entry(if i % 2 == 0 { "verify" } else { "asset.upload" });
+        e.asset_id = (i < 3).then_some(asset);
+        e.details = serde_json::json!({ "i": i, "nested": { "b": 1, "a": [1, 2] } });
+        let row = store.append_audit(e).await.expect("append");
+        assert_eq!(row.id, i + 1);
+    }
+    let rep = store.verify_audit_chain().await.expect("verify");
+    assert!(rep.ok);
+    assert_eq!((rep.rows, rep.first_bad_id), (6, None));
+    let (rows, _) = store
+        .audit_query(&AuditFilter::default())
+        .await
+        .expect("query");
+    assert_eq!(rows[0].prev_hash, GENESIS_HASH);
+    assert_eq!(rows[5].hash, rep.head_hash);
+    assert!(rows.windows(2).all(|w| w[1].prev_hash == w[0].hash));
+
+    // Filters and paging.
+    let f = AuditFilter {
+        action: Some("verify".into()),
+        limit: 2,
+        ..Default::default()
+    };
+    let (p1, next) = store.audit_query(&f).await.expect("page 1");
+    assert_eq!(p1.iter().map(|r| r.id).collect::<Vec<_>>(), vec![1, 3]);
+    let (p2, end) = store
+        .audit_query(&AuditFilter {
+            after_id: next,
+            ..f.clone()
+        })
+        .await
+        .expect("page 2");
+    assert_eq!(
+        (p2.iter().map(|r| r.id).collect::<Vec<_>>(), end),
+        (vec![5], None)
+    );
+    let by_asset = AuditFilter {
+        asset_id: Some(asset),
+        ..Default::default()
+    };
+    assert_eq!(
+        store.audit_query(&by_asset).await.expect("asset").0.len(),
+        3
+    );
+    let future = AuditFilter {
+        since: Some("2999-01-01T00:00:00Z".into()),
+        ..Default::default()
+    };
+    assert!(
+        store
+            .audit_query(&future)
+            .await
+            .expect("since")
+            .0
+            .is_empty()
+    );
+    let past = AuditFilter {
+        until: Some("2000-01-01T00:00:00.000Z".into()),
+        ..Default::default()
+    };
+    assert!(store.audit_query(&past).await.expect("until").0.is_empty());
+    let bad = AuditFilter {
+        since: Some("yesterday".into()),
+        ..Default::default()
+    };
+    assert!(matches!(
+        store.audit_query(&bad).await,
+        Err(StoreError::Invalid(_))
+    ));
+
+    // The triggers refuse edits and deletions.
+    let mut conn = raw(&dir).await;
+    for sql in [
+        "UPDATE audit SET actor = 'mallory' WHERE id = 3",
+        "DELETE FROM audit WHERE id = 6",
+    ] {
+        let e = sqlx::query(sql).execute(&mut conn).await.expect_err(sql);
+        assert!(e.to_string().contains("append-only"), "{e}");
+    }
+    // Behind the triggers' back: detected, first bad row named.
+    sqlx::query("DROP TRIGGER audit_no_update")
+        .execute(&mut conn)
+        .await
+        .expect("drop");
+    sqlx::query("UPDATE audit SET details = '{\"i\":99}' WHERE id = 3")
+        .execute(&mut conn)
+        .await
+        .expect("tamper");
+    let rep = store.verify_audit_chain().await.expect("verify");
+    assert!(!rep.ok);
+    assert_eq!(rep.first_bad_id, Some(3));
+    assert_eq!(rep.rows, 6);
+}
+
+#[tokio::test]
+async fn audit_chain_detects_a_deleted_row() {
+    let (dir, store) = setup().await;
+    for _ in 0..4 {
+        store.append_audit(entry("verify")).await.expect("append");
+    }
+    let mut conn = raw(&dir).await;
+    sqlx::query("DROP TRIGGER audit_no_delete")
+        .execute(&mut conn)
+        .await
+        .expect("drop");
+    sqlx::query("DELETE FROM audit WHERE id = 2")
+        .execute(&mut conn)
+        .await
+        .expect("delete");
+    let rep = store.verify_audit_chain().await.expect("verify");
+    assert_eq!((rep.ok, rep.first_bad_id, rep.rows), (false, Some(3), 3));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn concurrent_appends_never_fork_the_chain() {
+    let (_dir, store) = setup().await;
+    let tasks: Vec<_> = (0..4)
+        .map(|t| {
+            let store = store.clone();
+            tokio::spawn(async move {
+                for _ in 0..15 {
+                    store
+                        .append_audit(AuditEntry::new(format!("t{t}"), "verify"))
+                        .await
+                        .expect("append");
+                }
+            })
+        })
+        .collect();
+    for t in tasks {
+        t.await.expect("task");
+    }
+    let rep = store.verify_audit_chain().await.expect("verify");
+    assert!(rep.ok);
+    assert_eq!(rep.rows, 60);
+}
+
+// ---- verifications -------------------------------------------------------------------------
+
+#[tokio::test]
+async fn verifications_are_recorded_with_their_audit_row() {
+    let (dir, store) = setup().await;
+    let a = original(&store).await;
+    let v = NewVerification {
+        actor: "key-1".into(),
+        asset_id: Some(a.id),
+        images: 2,
+        image_sha256: vec!["a".repeat(64), "b".repeat(64)],
+        result: serde_json::json!({ "decision": "watermarked", "p_value": 1e-9 }),
+    };
+    let (vid, audit_id) = store
+        .record_verification(v.clone(), entry("verify"))
+        .await
+        .expect("record");
+    let (rows, _) = store
+        .audit_query(&AuditFilter {
+            action: Some("verify".into()),
+            ..Default::default()
+        })
+        .await
+        .expect("audit");
+    assert_eq!(
+        rows.iter().map(|r| (r.id, r.asset_id)).collect::<Vec<_>>(),
+        vec![(audit_id, Some(a.id))]
+    );
+    let mut conn = raw(&dir).await;
+    let stored: String = sqlx::query_scalar("SELECT id FROM verifications")
+        .fetch_one(&mut conn)
+        .await
+        .expect("row");
+    assert_eq!(stored, vid.to_string());
+    assert_eq!(store.counts().await.expect("counts").verifications, 1);
+
+    let bad = NewVerification {
+        image_sha256: vec!["../x".into()],
+        ..v.clone()
+    };
+    assert!(matches!(
+        store.record_verification(bad, entry("verify")).await,
+        Err(StoreError::Invalid(_))
+    ));
+    let unknown = NewVerification {
+        asset_id: Some(Uuid::new_v4()),
+        ..v
+    };
+    assert!(matches!(
+        store.record_verification(unknown, entry("verify")).await,
+        Err(StoreError::NotFound)
+    ));
+    assert_eq!(store.counts().await.expect("counts").verifications, 1);
+    assert_eq!(store.verify_audit_chain().await.expect("chain").rows, 2);
+}
+
+// ---- API keys ------------------------------------------------------------------------------
+
+#[tokio::test]
+async fn api_keys_authenticate_revoke_and_store_only_the_hash() {
+    let (dir, store) = setup().await;
+    assert_eq!(store.api_key_count().await.expect("count"), 0);
+    let (key, token) = store
+        .create_api_key("ci", &[Scope::Verifier, Scope::Owner, Scope::Owner])
+        .await
+        .expect("create");
+    assert!(token.starts_with(TOKEN_PREFIX) && token.len() == 68);
+    assert_eq!(key.scopes, vec![Scope::Owner, Scope::Verifier]);
+    assert!(key.allows(Scope::Owner) && !key.allows(Scope::Auditor));
+    assert_eq!(
+        store.authenticate(&token).await.expect("auth"),
+        Some(key.clone())
+    );
+    let mut wrong = token.clone();
+    wrong.replace_range(10..11, if &token[10..11] == "0" { "1" } else { "0" });
+    for bad in [
+        wrong.as_str(),
+        "",
+        "smk_",
+        "Bearer x",
+        &token.to_uppercase(),
+    ] {
+        assert_eq!(
+            store.authenticate(bad).await.expect("auth"),
+            None,
+            "{bad:?}"
+        );
+    }
+    let bytes = all_files_bytes(&dir);
+    assert!(
+        !contains(&bytes, token.as_bytes()),
+        "token stored in plaintext"
+    );
+    assert!(
+        !contains(&bytes, &token.as_bytes()[4..]),
+        "token hex stored in plaintext"
+    );
+    assert!(
+        contains(&bytes, api_keys::token_hash(&token).as_bytes()),
+        "its hash is"
+    );
+
+    assert_eq!("auditor".parse::<Scope>().expect("scope"), Scope::Auditor);
+    assert!("root".parse::<Scope>().is_err());
+    assert!(store.create_api_key("x", &[]).await.is_err());
+    store.revoke_api_key(key.id).await.expect("revoke");
+    store.revoke_api_key(key.id).await.expect("revoke again");
+    assert_eq!(store.authenticate(&token).await.expect("auth"), None);
+    assert!(matches!(
+        store.revoke_api_key(Uuid::new_v4()).await,
+        Err(StoreError::NotFound)
+    ));
+    assert_eq!(store.api_key_count().await.expect("count"), 1);
+    assert!(store.list_api_keys().await.expect("list")[0].revoked);
+}
+
+// ---- database settings ---------------------------------------------------------------------
+
+#[tokio::test]
+async fn database_uses_wal_and_foreign_keys() {
+    let (_dir, store) = setup().await;
+    let mode: String = sqlx::query_scalar("PRAGMA journal_mode")
+        .fetch_one(&store.pool)
+        .await
+        .expect("mode");
+    assert_eq!(mode, "wal");
+    let fk: i64 = sqlx::query_scalar("PRAGMA foreign_keys")
+        .fetch_one(&store.pool)
+        .await
+        .expect("fk");
+    assert_eq!(fk, 1);
+    let busy: i64 = sqlx::query_scalar("PRAGMA busy_timeout")
+        .fetch_one(&store.pool)
+        .await
+        .expect("busy");
+    assert_eq!(busy, 5000);
+    store.ping().await.expect("ping");
+}
