@@ -134,6 +134,12 @@ impl Store {
         Ok(())
     }
 
+    /// Closes the pool (waits for connections in use); the last connection checkpoints the WAL.
+    /// For graceful shutdown; later calls on any clone fail.
+    pub async fn close(&self) {
+        self.pool.close().await;
+    }
+
     /// Jobs by state, assets, verifications and audit rows.
     pub async fn counts(&self) -> Result<Counts> {
         let mut c = Counts::default();
