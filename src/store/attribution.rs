@@ -184,7 +184,8 @@ pub(crate) async fn insert_in(
         let mut q = if chunk.len() == BATCH {
             sqlx::query(full)
         } else {
-            sqlx::query(AssertSqlSafe(insert_sql(chunk.len())))
+            // One-off statement for the tail: keep it out of the statement cache.
+            sqlx::query(AssertSqlSafe(insert_sql(chunk.len()))).persistent(false)
         };
         for rec in chunk {
             let (flags, data) = encode(rec);

@@ -95,6 +95,7 @@ pub struct ChainReport {
 }
 
 const MAX_FIELD: usize = 256;
+const MAX_DETAILS: usize = 64 * 1024;
 
 impl Store {
     /// Appends one row in its own `BEGIN IMMEDIATE` transaction.
@@ -204,6 +205,9 @@ pub(crate) async fn append_in(conn: &mut SqliteConnection, e: &AuditEntry) -> Re
     validate_field("action", &e.action)?;
     let details = serde_json::to_string(&e.details)
         .map_err(|err| StoreError::invalid(format!("audit details: {err}")))?;
+    if details.len() > MAX_DETAILS {
+        return Err(StoreError::invalid("audit details exceed 64 KiB"));
+    }
     let head = sqlx::query("SELECT id, hash FROM audit ORDER BY id DESC LIMIT 1")
         .fetch_optional(&mut *conn)
         .await?;

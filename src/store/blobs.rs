@@ -24,9 +24,23 @@ pub struct BlobStore {
 }
 
 impl BlobStore {
-    /// Opens (creating) `root` and `root/tmp`.
+    /// Opens (creating) `root` and `root/tmp`, removing temp files older than a day (left by a
+    /// process that died mid-upload; younger ones may belong to another running process).
     pub(crate) fn open(root: PathBuf) -> io::Result<Self> {
-        fs::create_dir_all(root.join("tmp"))?;
+        let tmp = root.join("tmp");
+        fs::create_dir_all(&tmp)?;
+        let day = std::time::Duration::from_secs(24 * 3600);
+        for e in fs::read_dir(&tmp)?.flatten() {
+            let stale = e
+                .metadata()
+                .and_then(|m| m.modified())
+                .ok()
+                .and_then(|t| t.elapsed().ok())
+                .is_some_and(|age| age > day);
+            if stale && let Err(err) = fs::remove_file(e.path()) {
+                tracing::warn!(path = %e.path().display(), %err, "could not remove a stale temp file");
+            }
+        }
         Ok(BlobStore { root })
     }
 

@@ -55,7 +55,10 @@ impl MasterKey {
             return Self::from_hex(&hex);
         }
         match std::fs::read_to_string(file) {
-            Ok(text) => return Self::from_hex(&Zeroizing::new(text)),
+            Ok(text) => {
+                warn_if_readable_by_others(file);
+                return Self::from_hex(&Zeroizing::new(text));
+            }
             Err(e) if e.kind() != std::io::ErrorKind::NotFound => return Err(e.into()),
             Err(_) => {}
         }
@@ -82,6 +85,21 @@ impl MasterKey {
             Err(e) => Err(e.error.into()),
         }
     }
+}
+
+/// Logs a warning (the path only) when the key file is readable by group or others.
+fn warn_if_readable_by_others(file: &Path) {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        if let Ok(m) = std::fs::metadata(file)
+            && m.permissions().mode() & 0o077 != 0
+        {
+            tracing::warn!(path = %file.display(), "master key file is readable by group or others; chmod 600 it");
+        }
+    }
+    #[cfg(not(unix))]
+    let _ = file;
 }
 
 /// Fills `buf` from the OS random source. Failing to get randomness is not recoverable.

@@ -273,6 +273,38 @@ async fn bad_blob_ids_are_rejected() {
     ));
 }
 
+#[tokio::test]
+async fn stale_temp_files_are_removed_at_open_and_fresh_ones_kept() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let key = MasterKey::generate();
+    let store = Store::open(dir.path(), key.clone()).await.expect("open");
+    let old = store
+        .blobs()
+        .temp_file()
+        .expect("tmp")
+        .keep()
+        .expect("keep")
+        .1;
+    let young = store
+        .blobs()
+        .temp_file()
+        .expect("tmp")
+        .keep()
+        .expect("keep")
+        .1;
+    let two_days = std::time::SystemTime::now() - Duration::from_secs(48 * 3600);
+    std::fs::File::options()
+        .write(true)
+        .open(&old)
+        .expect("open")
+        .set_modified(two_days)
+        .expect("set mtime");
+    store.close().await;
+    Store::open(dir.path(), key).await.expect("reopen");
+    assert!(!old.exists(), "stale temp file removed");
+    assert!(young.exists(), "fresh temp file kept");
+}
+
 // ---- master key and keys at rest -----------------------------------------------------------
 
 #[tokio::test]
@@ -1141,6 +1173,16 @@ async fn audit_chain_verifies_and_tampering_is_found() {
         ..Default::default()
     };
     assert!(store.audit_query(&past).await.expect("until").0.is_empty());
+    let mut huge = entry("verify");
+    huge.details = serde_json::json!({ "x": "a".repeat(70_000) });
+    assert!(matches!(
+        store.append_audit(huge).await,
+        Err(StoreError::Invalid(_))
+    ));
+    assert!(matches!(
+        store.append_audit(entry("")).await,
+        Err(StoreError::Invalid(_))
+    ));
     let bad = AuditFilter {
         since: Some("yesterday".into()),
         ..Default::default()
