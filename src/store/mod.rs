@@ -40,7 +40,11 @@ pub use audit::{AuditEntry, AuditFilter, AuditRow, ChainReport, GENESIS_HASH, MA
 pub use blobs::{BlobRef, BlobStore};
 pub use crypto::{MASTER_KEY_ENV, MasterKey};
 pub use error::{Result, StoreError};
-pub use jobs::{Claimed, Job, JobCounts, JobState, NewJob, ProgressUpdate};
+pub use jobs::{
+    BACKOFF_BASE, BACKOFF_CAP, Claimed, Job, JobCounts, JobState, MAX_ATTEMPTS, MAX_LEASE, NewJob,
+    ProgressUpdate, backoff,
+};
+pub use keys::MAX_MESSAGE_BITS;
 pub use verifications::NewVerification;
 
 use serde::Serialize;
