@@ -217,29 +217,9 @@ pub(crate) fn embed_cmd(a: &EmbedArgs) -> Result<()> {
         held.len()
     );
     let every = (opts.finetune.steps / 20).max(1);
-    let out = embed(&g, &train, &message, &model, &opts, |p| match p.phase {
-        Phase::Targets => eprintln!("rendering targets…"),
-        Phase::Plan => eprintln!("pruning, scoring, selecting and splitting carriers…"),
-        Phase::Finetune => {
-            if let Some(s) = p.log
-                && (s.step % every == 0 || s.step == 1)
-            {
-                eprintln!(
-                    "step {}/{} | L_wm {:.4} (bce clean {:.4}, eot {:.4}) | bits clean {:.3} eot {:.3} | L_vis {:.4} | {:.2} dB | {:.2} s/step",
-                    s.step,
-                    p.total,
-                    s.l_wm,
-                    s.bce_clean,
-                    s.bce_eot,
-                    s.bit_acc_clean,
-                    s.bit_acc_eot,
-                    s.l_vis,
-                    s.psnr,
-                    s.seconds
-                );
-            }
-        }
-        Phase::Done => {}
+    let out = embed(&g, &train, &message, &model, &opts, |p| {
+        print_progress(&p, every);
+        std::ops::ControlFlow::Continue(())
     })?;
     let r = &out.report;
     eprintln!(
@@ -286,6 +266,34 @@ pub(crate) struct VerifyArgs {
     fpr: f64,
     #[command(flatten)]
     model: ModelArgs,
+}
+
+/// One progress line on stderr (every `every` steps).
+fn print_progress(p: &crate::embed::pipeline::Progress, every: usize) {
+    match p.phase {
+        Phase::Targets => eprintln!("rendering targets…"),
+        Phase::Plan => eprintln!("pruning, scoring, selecting and splitting carriers…"),
+        Phase::Finetune => {
+            if let Some(s) = p.log
+                && (s.step % every == 0 || s.step == 1)
+            {
+                eprintln!(
+                    "step {}/{} | L_wm {:.4} (bce clean {:.4}, eot {:.4}) | bits clean {:.3} eot {:.3} | L_vis {:.4} | {:.2} dB | {:.2} s/step",
+                    s.step,
+                    p.total,
+                    s.l_wm,
+                    s.bce_clean,
+                    s.bce_eot,
+                    s.bit_acc_clean,
+                    s.bit_acc_eot,
+                    s.l_vis,
+                    s.psnr,
+                    s.seconds
+                );
+            }
+        }
+        Phase::Done => {}
+    }
 }
 
 pub(crate) fn verify_cmd(a: &VerifyArgs) -> Result<()> {

@@ -28,6 +28,7 @@
 //! steps; normalised to sum 1 this is its share of the watermark gradient in the attribution
 //! records — a direct check that the watermark loss "lives" on the carriers SBAG chose.
 
+use std::ops::ControlFlow;
 use std::time::Instant;
 
 use burn::tensor::{Device, Tensor, TensorData};
@@ -179,6 +180,8 @@ pub enum FinetuneError {
     MaskSize { masks: usize, scene: usize },
     #[error("the loss became {0} at step {1}")]
     Diverged(f32, usize),
+    #[error("cancelled after step {step}")]
+    Cancelled { step: usize },
 }
 
 /// A training view: camera and the original scene's render through it.
@@ -455,7 +458,7 @@ pub fn finetune(
     model: &WatermarkModel,
     message: &[bool],
     cfg: &FinetuneConfig,
-    mut progress: impl FnMut(&StepLog),
+    mut progress: impl FnMut(&StepLog) -> ControlFlow<()>,
 ) -> Result<Finetuned, FinetuneError> {
     let start = Instant::now();
     if message.len() != model.bits() {
@@ -714,8 +717,11 @@ pub fn finetune(
             },
             seconds: t0.elapsed().as_secs_f32(),
         };
-        progress(&entry);
+        let flow = progress(&entry);
         log.push(entry);
+        if flow.is_break() {
+            return Err(FinetuneError::Cancelled { step });
+        }
     }
 
     let total: f64 = wm_norm_sum.iter().sum();
@@ -872,7 +878,10 @@ mod tests {
             wm_lr_scale: 40.0,
             ..config(40)
         };
-        let out = finetune(&g, &mk, &views, &m, &msg, &cfg, |_| {}).unwrap();
+        let out = finetune(&g, &mk, &views, &m, &msg, &cfg, |_| {
+            ControlFlow::Continue(())
+        })
+        .unwrap();
         let after = bce_of(&out.gaussians, &views, &opts, &m, &msg);
         // A random decoder barely reacts to 75 small Gaussians, so the drop is small; a wrong
         // sign or a gradient routed elsewhere would raise it or leave it unchanged.
@@ -912,7 +921,10 @@ mod tests {
         cfg.weights.rec = 0.0;
         cfg.weights.dssim = 0.0;
         cfg.weights.wav_high = 0.0;
-        let out = finetune(&g, &mk, &views, &m, &message(), &cfg, |_| {}).unwrap();
+        let out = finetune(&g, &mk, &views, &m, &message(), &cfg, |_| {
+            ControlFlow::Continue(())
+        })
+        .unwrap();
         let carriers_moved = (0..g.len())
             .filter(|&i| i.is_multiple_of(4) && out.gaussians.sh_dc[i] != g.sh_dc[i])
             .count();
@@ -924,7 +936,10 @@ mod tests {
         }
         // Coupled: the joint loss (here L_wm alone) moves every Gaussian.
         cfg.coupled = true;
-        let out = finetune(&g, &mk, &views, &m, &message(), &cfg, |_| {}).unwrap();
+        let out = finetune(&g, &mk, &views, &m, &message(), &cfg, |_| {
+            ControlFlow::Continue(())
+        })
+        .unwrap();
         let moved = (0..g.len())
             .filter(|&i| !i.is_multiple_of(4) && out.gaussians.sh_dc[i] != g.sh_dc[i])
             .count();
@@ -938,19 +953,25 @@ mod tests {
         let mk = masks(g.len(), |i| i.is_multiple_of(4), [1.0; 5], [1.0; 5]);
         let short = vec![true; 4];
         assert!(matches!(
-            finetune(&g, &mk, &views, &m, &short, &config(1), |_| {}),
+            finetune(&g, &mk, &views, &m, &short, &config(1), |_| {
+                ControlFlow::Continue(())
+            }),
             Err(FinetuneError::MessageLength {
                 got: 4,
                 expected: 8
             })
         ));
         assert!(matches!(
-            finetune(&g, &mk, &[], &m, &message(), &config(1), |_| {}),
+            finetune(&g, &mk, &[], &m, &message(), &config(1), |_| {
+                ControlFlow::Continue(())
+            }),
             Err(FinetuneError::NoViews)
         ));
         let small = masks(3, |_| true, [1.0; 5], [1.0; 5]);
         assert!(matches!(
-            finetune(&g, &small, &views, &m, &message(), &config(1), |_| {}),
+            finetune(&g, &small, &views, &m, &message(), &config(1), |_| {
+                ControlFlow::Continue(())
+            }),
             Err(FinetuneError::MaskSize { .. })
         ));
     }

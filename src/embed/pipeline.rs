@@ -2,6 +2,7 @@
 //! Trio-Experts → SBAG → masks → decoupled finetuning → attribution, with progress reports and
 //! the figures a user needs (what was chosen, how long each phase took, how the views decode).
 
+use std::ops::ControlFlow;
 use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
@@ -64,6 +65,8 @@ pub enum EmbedError {
     NoViews,
     #[error("the scene is empty")]
     EmptyScene,
+    #[error("cancelled")]
+    Cancelled,
 }
 
 /// Seconds spent per phase.
@@ -108,14 +111,16 @@ pub struct Embedded {
 }
 
 /// Embeds `message` into `g`, training on `cameras` (the caller keeps its held-out views out of
-/// them). `model` is the frozen decoder on an autodiff device.
+/// them). `model` is the frozen decoder on an autodiff device. `progress` is called at each phase
+/// and finetuning step; returning [`ControlFlow::Break`] stops the embedding with
+/// [`EmbedError::Cancelled`].
 pub fn embed(
     g: &Gaussians,
     cameras: &[Camera],
     message: &[bool],
     model: &WatermarkModel,
     opts: &EmbedOptions,
-    mut progress: impl FnMut(Progress),
+    mut progress: impl FnMut(Progress) -> ControlFlow<()>,
 ) -> Result<Embedded, EmbedError> {
     let t_all = Instant::now();
     if g.is_empty() {
@@ -125,21 +130,22 @@ pub fn embed(
         return Err(EmbedError::NoViews);
     }
     let total = opts.finetune.steps;
-    let report_phase = |p: &mut dyn FnMut(Progress), phase| {
-        p(Progress {
-            phase,
-            step: 0,
-            total,
-            log: None,
-        })
+    let report_phase = |p: &mut dyn FnMut(Progress) -> ControlFlow<()>, phase| match p(Progress {
+        phase,
+        step: 0,
+        total,
+        log: None,
+    }) {
+        ControlFlow::Continue(()) => Ok(()),
+        ControlFlow::Break(()) => Err(EmbedError::Cancelled),
     };
-    report_phase(&mut progress, Phase::Targets);
+    report_phase(&mut progress, Phase::Targets)?;
     let ro = opts.render_options();
     let t = Instant::now();
     let views: Vec<View> = target_views(g, cameras, &ro)?;
     let t_targets = t.elapsed().as_secs_f64();
 
-    report_phase(&mut progress, Phase::Plan);
+    report_phase(&mut progress, Phase::Plan)?;
     let t = Instant::now();
     let mut cfg = opts.plan.clone();
     if opts.no_group_mask {
@@ -167,7 +173,11 @@ pub fn embed(
                 log: Some(*s),
             })
         },
-    )?;
+    )
+    .map_err(|e| match e {
+        FinetuneError::Cancelled { .. } => EmbedError::Cancelled,
+        e => e.into(),
+    })?;
     let t_ft = t.elapsed().as_secs_f64();
 
     let mut records = p.records;
@@ -208,7 +218,7 @@ pub fn embed(
         },
         options: opts.clone(),
     };
-    progress(Progress {
+    let _ = progress(Progress {
         phase: Phase::Done,
         step: total,
         total,
