@@ -7,10 +7,14 @@
 // is how bad values get rejected.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
+pub mod app;
 pub mod attack;
 pub mod cli;
+pub mod config;
 pub mod decoder;
 pub mod embed;
+pub mod http;
+pub mod queue;
 pub mod render;
 pub mod scene;
 pub mod store;

@@ -16,6 +16,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
 
 mod embed;
+mod serve;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
@@ -67,6 +68,13 @@ enum Command {
     /// Evaluate a watermarked scene against its original on held-out views: PSNR, SSIM, bit
     /// accuracy clean and under image and model attacks (JSON).
     Eval(Box<embed::EvalSceneArgs>),
+    /// Run the HTTP service: uploads, watermarking jobs, verification, audit log.
+    Serve(Box<serve::ServeArgs>),
+    /// Manage API keys of the service's store.
+    Keys {
+        #[command(subcommand)]
+        command: Box<serve::KeysCommand>,
+    },
 }
 
 #[derive(Subcommand, Debug)]
@@ -384,6 +392,8 @@ fn run(cli: Cli) -> Result<()> {
         Command::Embed(args) => embed::embed_cmd(&args),
         Command::Verify(args) => embed::verify_cmd(&args),
         Command::Eval(args) => embed::eval_scene_cmd(&args),
+        Command::Serve(args) => serve::serve_cmd(&args),
+        Command::Keys { command } => serve::keys_cmd(&command),
     }
 }
 

@@ -1,0 +1,189 @@
+//! The service put together: configuration → store → worker pool → HTTP server, with graceful
+//! shutdown. `splatmark serve` runs it; the integration tests start it on 127.0.0.1:0.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use anyhow::{Context, Result};
+use burn::tensor::Device;
+use tokio::sync::{Notify, watch};
+use tokio::task::JoinHandle;
+
+use crate::config::Config;
+use crate::http::{AppState, Decoders, Metrics, router};
+use crate::queue::{Pool, WorkerSpec, plan_workers, start};
+use crate::store::{MasterKey, Scope, Store};
+
+/// A running service.
+pub struct App {
+    /// The address it listens on (the real port when the config asked for port 0).
+    pub addr: SocketAddr,
+    pub store: Store,
+    /// Where the bootstrap admin token was written, on the first start only.
+    pub admin_token_file: Option<PathBuf>,
+    shutdown: watch::Sender<bool>,
+    server: JoinHandle<std::io::Result<()>>,
+    pool: Pool,
+}
+
+impl App {
+    /// Opens the store under `cfg.data_dir`, starts the workers (as planned from `cfg`, or
+    /// `workers` when given) and the HTTP server; returns once it listens.
+    pub async fn start(
+        cfg: Config,
+        master: MasterKey,
+        workers: Option<Vec<WorkerSpec>>,
+    ) -> Result<App> {
+        cfg.validate()?;
+        std::fs::create_dir_all(&cfg.data_dir)
+            .with_context(|| format!("cannot create {}", cfg.data_dir.display()))?;
+        let store = Store::open(&cfg.data_dir, master)
+            .await
+            .with_context(|| format!("cannot open the store in {}", cfg.data_dir.display()))?;
+        let admin_token_file = bootstrap_admin(&store, &cfg).await?;
+        let listener = tokio::net::TcpListener::bind(cfg.bind)
+            .await
+            .with_context(|| format!("cannot listen on {}", cfg.bind))?;
+        let addr = listener.local_addr()?;
+        let workers = match workers {
+            Some(w) => w,
+            None => plan_workers(&cfg).await,
+        };
+        let cfg = Arc::new(cfg);
+        let (shutdown, rx) = watch::channel(false);
+        let wake = Arc::new(Notify::new());
+        let pool = start(
+            store.clone(),
+            cfg.clone(),
+            workers,
+            wake.clone(),
+            rx.clone(),
+        );
+        let state = AppState {
+            store: store.clone(),
+            cfg,
+            wake,
+            pool: pool.status.clone(),
+            decoders: Arc::new(Decoders::new(Device::flex())),
+            metrics: Arc::new(Metrics::default()),
+        };
+        let app = router(state);
+        let mut rx_server = rx;
+        let server = tokio::spawn(async move {
+            axum::serve(listener, app)
+                .with_graceful_shutdown(async move {
+                    let _ = rx_server.wait_for(|&s| s).await;
+                })
+                .await
+        });
+        tracing::info!(%addr, "splatmark listening");
+        Ok(App {
+            addr,
+            store,
+            admin_token_file,
+            shutdown,
+            server,
+            pool,
+        })
+    }
+
+    /// Asks the server and the workers to stop.
+    pub fn shutdown(&self) {
+        let _ = self.shutdown.send(true);
+    }
+
+    /// Stops and waits: in-flight requests finish; a running job is cancelled and re-queued when
+    /// its lease expires.
+    pub async fn stop(self) -> Result<()> {
+        self.shutdown();
+        self.server.await??;
+        self.pool.join().await;
+        Ok(())
+    }
+}
+
+/// On a store without API keys: creates an admin key and writes its token to
+/// `DATA_DIR/admin.token` (mode 0600); the token is never logged.
+async fn bootstrap_admin(store: &Store, cfg: &Config) -> Result<Option<PathBuf>> {
+    if store.api_key_count().await? > 0 {
+        return Ok(None);
+    }
+    let (_, token) = store
+        .create_api_key("bootstrap-admin", &[Scope::Admin])
+        .await?;
+    let path = cfg.data_dir.join("admin.token");
+    write_secret(&path, token.as_bytes())?;
+    tracing::warn!(file = %path.display(), "created the first admin API key; its token is in this file");
+    Ok(Some(path))
+}
+
+/// Writes a secret readable by the owner only.
+pub fn write_secret(path: &std::path::Path, bytes: &[u8]) -> Result<()> {
+    use std::io::Write;
+    let dir = path.parent().unwrap_or(std::path::Path::new("."));
+    let mut tmp = tempfile::NamedTempFile::new_in(dir)?;
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        tmp.as_file()
+            .set_permissions(std::fs::Permissions::from_mode(0o600))?;
+    }
+    tmp.write_all(bytes)?;
+    tmp.as_file().sync_all()?;
+    tmp.persist(path)
+        .with_context(|| format!("cannot write {}", path.display()))?;
+    Ok(())
+}
+
+/// The master key: `SPLATMARK_MASTER_KEY` (hex) when set, else the key file (created on first
+/// start).
+pub fn master_key(cfg: &Config) -> Result<MasterKey> {
+    if let Ok(hex) = std::env::var("SPLATMARK_MASTER_KEY") {
+        return MasterKey::from_hex(hex.trim())
+            .context("SPLATMARK_MASTER_KEY is not a 64-digit hex key");
+    }
+    let path = cfg.master_key_path();
+    if let Some(d) = path.parent() {
+        std::fs::create_dir_all(d)?;
+    }
+    MasterKey::load_or_create(&path)
+        .with_context(|| format!("cannot load or create the master key {}", path.display()))
+}
+
+/// `splatmark serve`: runs until Ctrl-C or SIGTERM, then shuts down gracefully.
+pub async fn serve(cfg: Config) -> Result<()> {
+    let master = master_key(&cfg)?;
+    let app = App::start(cfg, master, None).await?;
+    if let Some(f) = &app.admin_token_file {
+        eprintln!(
+            "admin API token written to {} (keep it secret)",
+            f.display()
+        );
+    }
+    eprintln!("splatmark listening on http://{}", app.addr);
+    shutdown_signal().await;
+    tracing::info!("shutting down");
+    app.stop().await
+}
+
+async fn shutdown_signal() {
+    let ctrl_c = async {
+        let _ = tokio::signal::ctrl_c().await;
+    };
+    #[cfg(unix)]
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending::<()>().await,
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! {
+        _ = ctrl_c => {},
+        _ = term => {},
+    }
+}

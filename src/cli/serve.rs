@@ -1,0 +1,131 @@
+//! `splatmark serve` (the service) and `splatmark keys create` (API keys from the shell).
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+use anyhow::{Context, Result};
+use clap::{Args, Subcommand};
+
+use crate::config::{Config, DevicePolicy};
+use crate::store::{Scope, Store};
+
+/// Flags of `serve`: each overrides the config file and the environment.
+#[derive(Args, Debug)]
+pub(crate) struct ServeArgs {
+    /// TOML config file (see deploy/splatmark.toml); default: $SPLATMARK_CONFIG when set.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Address to listen on (default 127.0.0.1:8080).
+    #[arg(long)]
+    bind: Option<SocketAddr>,
+    /// Folder for the database, blobs and master key (default ./data).
+    #[arg(long)]
+    data_dir: Option<PathBuf>,
+    /// Number of workers (default: one per GPU adapter, or one CPU worker).
+    #[arg(long)]
+    workers: Option<usize>,
+    /// auto, cpu or wgpu.
+    #[arg(long)]
+    device: Option<String>,
+    /// Log as JSON lines.
+    #[arg(long)]
+    log_json: bool,
+}
+
+impl ServeArgs {
+    /// Defaults < file < environment < flags.
+    pub(crate) fn config(&self) -> Result<Config> {
+        let file = self
+            .config
+            .clone()
+            .or_else(|| std::env::var_os("SPLATMARK_CONFIG").map(PathBuf::from));
+        let mut c = Config::from_file(file.as_deref())?.with_env(|k| std::env::var(k).ok())?;
+        if let Some(b) = self.bind {
+            c.bind = b;
+        }
+        if let Some(d) = &self.data_dir {
+            c.data_dir = d.clone();
+        }
+        if let Some(w) = self.workers {
+            c.workers = Some(w);
+        }
+        if let Some(d) = &self.device {
+            c.device = match d.as_str() {
+                "auto" => DevicePolicy::Auto,
+                "cpu" => DevicePolicy::Cpu,
+                "wgpu" => DevicePolicy::Wgpu,
+                _ => anyhow::bail!("--device must be auto, cpu or wgpu"),
+            };
+        }
+        c.log_json |= self.log_json;
+        c.validate()?;
+        Ok(c)
+    }
+}
+
+fn init_tracing(json: bool) {
+    let filter =
+        tracing_subscriber::EnvFilter::try_from_env("SPLATMARK_LOG").unwrap_or_else(|_| {
+            tracing_subscriber::EnvFilter::new("info,tower_http=info,wgpu=warn,naga=warn")
+        });
+    let b = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr);
+    let _ = if json {
+        b.json().try_init()
+    } else {
+        b.try_init()
+    };
+}
+
+pub(crate) fn serve_cmd(a: &ServeArgs) -> Result<()> {
+    let cfg = a.config()?;
+    init_tracing(cfg.log_json);
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")?;
+    rt.block_on(crate::app::serve(cfg))
+}
+
+#[derive(Subcommand, Debug)]
+pub(crate) enum KeysCommand {
+    /// Create an API key and print its token (shown once; only its hash is stored).
+    Create {
+        /// A name for the key (who or what uses it).
+        #[arg(long)]
+        name: String,
+        /// Comma-separated scopes: owner, verifier, auditor, admin.
+        #[arg(long, value_delimiter = ',', required = true)]
+        scope: Vec<String>,
+        #[command(flatten)]
+        serve: ServeArgs,
+    },
+}
+
+pub(crate) fn keys_cmd(c: &KeysCommand) -> Result<()> {
+    let KeysCommand::Create { name, scope, serve } = c;
+    let scopes = scope
+        .iter()
+        .map(|s| {
+            s.trim()
+                .parse::<Scope>()
+                .map_err(|e| anyhow::anyhow!("{e}"))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let cfg = serve.config()?;
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?;
+    rt.block_on(async {
+        std::fs::create_dir_all(&cfg.data_dir)?;
+        let store = Store::open(&cfg.data_dir, crate::app::master_key(&cfg)?).await?;
+        let (key, token) = store.create_api_key(name, &scopes).await?;
+        eprintln!(
+            "created API key {} ({}) with scopes {:?}",
+            key.id, key.name, key.scopes
+        );
+        println!("{token}");
+        Ok(())
+    })
+}

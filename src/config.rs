@@ -1,0 +1,299 @@
+//! Configuration of `splatmark serve`, in layers: embedded defaults < optional TOML file <
+//! environment (`SPLATMARK_*`) < command-line flags. The defaults make one command work on a
+//! fresh machine: SQLite and blobs under `./data`, bind `127.0.0.1:8080`, one CPU worker.
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+/// Which devices the workers use.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum DevicePolicy {
+    /// One worker per hardware GPU adapter (burn-wgpu); one CPU worker (burn `flex`) when there
+    /// is none.
+    #[default]
+    Auto,
+    /// CPU workers only.
+    Cpu,
+    /// burn-wgpu on the default adapter (Mesa's software Vulkan counts).
+    Wgpu,
+}
+
+/// Views the embedding trains on when an upload comes without cameras (orbit around the scene)
+/// and the resolution renders are made at.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ViewDefaults {
+    pub orbit: usize,
+    pub width: u32,
+    pub height: u32,
+}
+
+impl Default for ViewDefaults {
+    fn default() -> Self {
+        Self {
+            orbit: 24,
+            width: 256,
+            height: 256,
+        }
+    }
+}
+
+/// Everything `serve` needs.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Config {
+    /// Address to listen on.
+    pub bind: SocketAddr,
+    /// SQLite database (`splatmark.db`), blobs (`blobs/`), master key and bootstrap token.
+    pub data_dir: PathBuf,
+    /// Number of workers; `None`: one per GPU adapter, or one CPU worker.
+    pub workers: Option<usize>,
+    pub device: DevicePolicy,
+    /// Largest upload (scene + cameras) in bytes.
+    pub max_upload_bytes: u64,
+    /// Largest scene accepted, in Gaussians.
+    pub max_gaussians: usize,
+    /// Most images in one verification request.
+    pub max_verify_images: usize,
+    /// Largest side of an image submitted for verification, in pixels.
+    pub max_image_side: u32,
+    /// Family-wise false-positive rate of verification decisions.
+    pub fpr: f64,
+    /// Job lease; workers heartbeat every third of it.
+    pub lease_seconds: u64,
+    /// Attempts before a job goes to the dead state.
+    pub max_attempts: u32,
+    /// File with the master key (hex); created on first start when missing. The environment
+    /// variable `SPLATMARK_MASTER_KEY` (hex) takes precedence. Default `DATA_DIR/master.key`.
+    pub master_key_file: Option<PathBuf>,
+    /// Folder with decoder weights `decoder-{bits}.bpk` (+ sidecars) overriding the shipped ones.
+    pub weights_dir: Option<PathBuf>,
+    /// Views for uploads without cameras.
+    pub views: ViewDefaults,
+    /// Finetuning steps of an embedding unless a request says otherwise.
+    pub steps: usize,
+    /// Log lines as JSON (for log shippers) instead of text.
+    pub log_json: bool,
+}
+
+impl Default for Config {
+    fn default() -> Self {
+        Self {
+            bind: SocketAddr::from(([127, 0, 0, 1], 8080)),
+            data_dir: PathBuf::from("data"),
+            workers: None,
+            device: DevicePolicy::Auto,
+            max_upload_bytes: 1 << 30,
+            max_gaussians: 10_000_000,
+            max_verify_images: 64,
+            max_image_side: 4096,
+            fpr: 1e-6,
+            lease_seconds: 60,
+            max_attempts: 3,
+            master_key_file: None,
+            weights_dir: None,
+            views: ViewDefaults::default(),
+            steps: 300,
+            log_json: false,
+        }
+    }
+}
+
+/// Why the configuration was rejected.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("cannot read config file {path}: {source}")]
+    Read {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("config file {path}: {message}")]
+    Parse { path: PathBuf, message: String },
+    #[error("environment variable {name}={value:?}: {message}")]
+    Env {
+        name: &'static str,
+        value: String,
+        message: String,
+    },
+    #[error("invalid configuration: {0}")]
+    Invalid(String),
+}
+
+impl Config {
+    /// Defaults overlaid with the TOML file `path` (when given).
+    pub fn from_file(path: Option<&Path>) -> Result<Self, ConfigError> {
+        let Some(path) = path else {
+            return Ok(Self::default());
+        };
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: path.to_owned(),
+            source,
+        })?;
+        toml::from_str(&text).map_err(|e| ConfigError::Parse {
+            path: path.to_owned(),
+            message: e.to_string(),
+        })
+    }
+
+    /// Overlays `SPLATMARK_*` variables read through `get` (the process environment in `serve`;
+    /// a map in tests).
+    pub fn with_env(mut self, get: impl Fn(&str) -> Option<String>) -> Result<Self, ConfigError> {
+        fn parse<T: std::str::FromStr>(name: &'static str, value: String) -> Result<T, ConfigError>
+        where
+            T::Err: std::fmt::Display,
+        {
+            value.trim().parse().map_err(|e: T::Err| ConfigError::Env {
+                name,
+                message: e.to_string(),
+                value,
+            })
+        }
+        macro_rules! env {
+            ($name:literal, $field:expr) => {
+                if let Some(v) = get($name) {
+                    $field = parse($name, v)?;
+                }
+            };
+            ($name:literal, some $field:expr) => {
+                if let Some(v) = get($name) {
+                    $field = Some(parse($name, v)?);
+                }
+            };
+        }
+        env!("SPLATMARK_BIND", self.bind);
+        env!("SPLATMARK_DATA_DIR", self.data_dir);
+        env!("SPLATMARK_WORKERS", some self.workers);
+        if let Some(v) = get("SPLATMARK_DEVICE") {
+            self.device = match v.trim() {
+                "auto" => DevicePolicy::Auto,
+                "cpu" => DevicePolicy::Cpu,
+                "wgpu" => DevicePolicy::Wgpu,
+                _ => {
+                    return Err(ConfigError::Env {
+                        name: "SPLATMARK_DEVICE",
+                        value: v,
+                        message: "expected auto, cpu or wgpu".into(),
+                    });
+                }
+            };
+        }
+        env!("SPLATMARK_MAX_UPLOAD_BYTES", self.max_upload_bytes);
+        env!("SPLATMARK_MAX_GAUSSIANS", self.max_gaussians);
+        env!("SPLATMARK_FPR", self.fpr);
+        env!("SPLATMARK_LEASE_SECONDS", self.lease_seconds);
+        env!("SPLATMARK_MAX_ATTEMPTS", self.max_attempts);
+        env!("SPLATMARK_MASTER_KEY_FILE", some self.master_key_file);
+        env!("SPLATMARK_WEIGHTS_DIR", some self.weights_dir);
+        env!("SPLATMARK_STEPS", self.steps);
+        env!("SPLATMARK_LOG_JSON", self.log_json);
+        Ok(self)
+    }
+
+    /// Checks the values that have a valid range.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let bad = |m: &str| Err(ConfigError::Invalid(m.into()));
+        if !(self.fpr > 0.0 && self.fpr < 1.0) {
+            return bad("fpr must be in (0, 1)");
+        }
+        if self.lease_seconds < 3 {
+            return bad("lease_seconds must be at least 3");
+        }
+        if self.max_attempts == 0 {
+            return bad("max_attempts must be at least 1");
+        }
+        if self.workers == Some(0) {
+            return bad("workers must be at least 1");
+        }
+        if self.max_verify_images == 0 {
+            return bad("max_verify_images must be at least 1");
+        }
+        if self.views.orbit < 2 || self.views.width < 16 || self.views.height < 16 {
+            return bad("views need at least 2 orbit views of at least 16×16 pixels");
+        }
+        if self.max_image_side < 64 {
+            return bad("max_image_side must be at least 64 (the decoder reads ≥ 64 px)");
+        }
+        Ok(())
+    }
+
+    /// The master key file in effect.
+    pub fn master_key_path(&self) -> PathBuf {
+        self.master_key_file
+            .clone()
+            .unwrap_or_else(|| self.data_dir.join("master.key"))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::collections::HashMap;
+
+    fn env(pairs: &[(&str, &str)]) -> impl Fn(&str) -> Option<String> {
+        let m: HashMap<String, String> = pairs
+            .iter()
+            .map(|(k, v)| (k.to_string(), v.to_string()))
+            .collect();
+        move |k| m.get(k).cloned()
+    }
+
+    #[test]
+    fn defaults_work_on_a_fresh_machine() {
+        let c = Config::default();
+        c.validate().unwrap();
+        assert_eq!(c.bind.to_string(), "127.0.0.1:8080");
+        assert_eq!(c.data_dir, PathBuf::from("data"));
+        assert_eq!(c.master_key_path(), PathBuf::from("data/master.key"));
+    }
+
+    #[test]
+    fn file_then_env_override_in_order() {
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("s.toml");
+        std::fs::write(
+            &f,
+            "bind = \"0.0.0.0:9000\"\nworkers = 2\nfpr = 1e-4\n[views]\norbit = 12\n",
+        )
+        .unwrap();
+        let c = Config::from_file(Some(&f)).unwrap();
+        assert_eq!(c.bind.port(), 9000);
+        assert_eq!(c.workers, Some(2));
+        assert_eq!(c.views.orbit, 12);
+        assert_eq!(c.views.width, 256, "unnamed fields keep their defaults");
+        let c = c
+            .with_env(env(&[
+                ("SPLATMARK_WORKERS", "3"),
+                ("SPLATMARK_DEVICE", "cpu"),
+            ]))
+            .unwrap();
+        assert_eq!(c.workers, Some(3));
+        assert_eq!(c.device, DevicePolicy::Cpu);
+        assert_eq!(
+            c.bind.port(),
+            9000,
+            "the file's value stays when env is silent"
+        );
+    }
+
+    #[test]
+    fn typos_and_bad_values_are_named() {
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("s.toml");
+        std::fs::write(&f, "bnd = \"0.0.0.0:9000\"\n").unwrap();
+        let e = Config::from_file(Some(&f)).unwrap_err().to_string();
+        assert!(e.contains("bnd"), "{e}");
+        let e = Config::default()
+            .with_env(env(&[("SPLATMARK_WORKERS", "many")]))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("SPLATMARK_WORKERS"), "{e}");
+        let c = Config {
+            fpr: 0.0,
+            ..Config::default()
+        };
+        assert!(c.validate().is_err());
+    }
+}

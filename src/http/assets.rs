@@ -1,0 +1,362 @@
+//! `/v1/assets`: streaming upload (validated by the scene reader before anything is stored),
+//! metadata, download, and the per-Gaussian attribution of watermarked assets.
+
+use std::sync::atomic::Ordering;
+
+use axum::Json;
+use axum::body::Body;
+use axum::extract::{Multipart, Path, Query, State};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use serde::{Deserialize, Serialize};
+use serde_json::json;
+use tokio::io::AsyncWriteExt;
+use uuid::Uuid;
+
+use super::AppState;
+use super::auth::Caller;
+use super::error::{ApiError, ApiResult};
+use crate::embed::sbag::Role;
+use crate::scene::camera::read_cameras;
+use crate::scene::format::{detect_format, read_as};
+use crate::scene::{Limits, SceneError};
+use crate::store::{Asset, AssetKind, AuditEntry, NewAsset, Scope};
+
+/// A multipart field's failure as a client error.
+pub(super) fn multipart_err(e: axum::extract::multipart::MultipartError) -> ApiError {
+    ApiError::new(e.status(), "Bad multipart body", e.body_text())
+}
+
+/// The file name a client gave, reduced to a safe base name (metadata only: blobs are named by
+/// their hash).
+fn clean_name(name: Option<&str>) -> Option<String> {
+    let base = name?.rsplit(['/', '\\']).next()?;
+    let s: String = base.chars().filter(|c| !c.is_control()).take(200).collect();
+    (!s.is_empty()).then_some(s)
+}
+
+/// Streams one multipart field into a temporary blob file, counting bytes against `budget`.
+pub(super) async fn spool(
+    st: &AppState,
+    field: &mut axum::extract::multipart::Field<'_>,
+    used: &mut u64,
+    budget: u64,
+) -> ApiResult<tempfile::NamedTempFile> {
+    let tmp = st.store.blobs().temp_file().map_err(ApiError::internal)?;
+    let mut out = tokio::fs::File::from_std(tmp.reopen().map_err(ApiError::internal)?);
+    while let Some(chunk) = field.chunk().await.map_err(multipart_err)? {
+        *used += chunk.len() as u64;
+        if *used > budget {
+            return Err(ApiError::too_large(format!(
+                "the upload is larger than this server's limit of {budget} bytes"
+            )));
+        }
+        out.write_all(&chunk).await.map_err(ApiError::internal)?;
+    }
+    out.flush().await.map_err(ApiError::internal)?;
+    Ok(tmp)
+}
+
+/// What the scene reader found in an upload.
+struct Checked {
+    format: String,
+    gaussians: u64,
+    sh_degree: u8,
+    cameras: Option<(usize, String)>,
+}
+
+/// Validates the spooled files with the scene and camera readers.
+fn check(
+    scene: &std::path::Path,
+    scene_name: Option<&str>,
+    cameras: Option<&std::path::Path>,
+    limits: &Limits,
+) -> Result<Checked, ApiError> {
+    let bytes = std::fs::read(scene).map_err(ApiError::internal)?;
+    if bytes.is_empty() {
+        return Err(ApiError::unprocessable("the scene file is empty"));
+    }
+    let hint = scene_name.and_then(|n| n.rsplit_once('.').map(|(_, e)| e));
+    let format = detect_format(&bytes, hint)?;
+    let g = read_as(&bytes, format, limits)?;
+    if g.is_empty() {
+        return Err(ApiError::unprocessable("the scene has no Gaussians"));
+    }
+    let cameras = match cameras {
+        Some(p) => {
+            let cams = read_cameras(p).map_err(|e| match e {
+                SceneError::Io { .. } | SceneError::IoPlain(_) => ApiError::internal(e),
+                e => ApiError::unprocessable(format!("cameras: {e}")),
+            })?;
+            if cams.is_empty() {
+                return Err(ApiError::unprocessable("cameras: the file holds no camera"));
+            }
+            let head = std::fs::read(p).map_err(ApiError::internal)?;
+            let kind = if head.starts_with(b"\x93NUMPY") {
+                "llff"
+            } else if head.iter().find(|b| !b.is_ascii_whitespace()) == Some(&b'[') {
+                "inria"
+            } else {
+                "nerf"
+            };
+            Some((cams.len(), kind.to_string()))
+        }
+        None => None,
+    };
+    Ok(Checked {
+        format: format.as_str().to_string(),
+        gaussians: g.len() as u64,
+        sh_degree: g.sh_degree,
+        cameras,
+    })
+}
+
+/// `POST /v1/assets` — multipart fields `scene` (required) and `cameras` (optional).
+pub async fn upload(
+    State(st): State<AppState>,
+    caller: Caller,
+    mut mp: Multipart,
+) -> ApiResult<Response> {
+    caller.require(&[Scope::Owner])?;
+    let budget = st.cfg.max_upload_bytes;
+    let mut used = 0u64;
+    let mut scene = None;
+    let mut cameras = None;
+    while let Some(mut field) = mp.next_field().await.map_err(multipart_err)? {
+        let name = field.name().unwrap_or_default().to_string();
+        let slot = match name.as_str() {
+            "scene" => &mut scene,
+            "cameras" => &mut cameras,
+            other => {
+                return Err(ApiError::bad_request(format!(
+                    "unexpected multipart field '{other}' (expected 'scene' and optionally 'cameras')"
+                )));
+            }
+        };
+        if slot.is_some() {
+            return Err(ApiError::bad_request(format!("field '{name}' given twice")));
+        }
+        let file_name = clean_name(field.file_name());
+        let tmp = spool(&st, &mut field, &mut used, budget).await?;
+        *slot = Some((tmp, file_name));
+    }
+    let (scene, scene_name) =
+        scene.ok_or_else(|| ApiError::bad_request("missing multipart field 'scene'"))?;
+    let limits = Limits {
+        max_gaussians: st.cfg.max_gaussians,
+        max_file_bytes: Some(budget),
+    };
+    let blobs = st.store.blobs().clone();
+    let name = scene_name.clone();
+    let (checked, scene_blob, cams_blob) = tokio::task::spawn_blocking(move || {
+        let checked = check(
+            scene.path(),
+            name.as_deref(),
+            cameras.as_ref().map(|(t, _)| t.path()),
+            &limits,
+        )?;
+        // Only now does anything become permanent.
+        let s = blobs.commit(scene).map_err(ApiError::internal)?;
+        let c = match cameras {
+            Some((t, _)) => Some(blobs.commit(t).map_err(ApiError::internal)?),
+            None => None,
+        };
+        Ok::<_, ApiError>((checked, s, c))
+    })
+    .await
+    .map_err(ApiError::internal)??;
+    let size = scene_blob.size;
+    let (n_cams, cams_format) = match checked.cameras {
+        Some((n, f)) => (Some(n), Some(f)),
+        None => (None, None),
+    };
+    let asset = st
+        .store
+        .insert_asset(
+            NewAsset {
+                owner: caller.id(),
+                kind: AssetKind::Original,
+                parent_id: None,
+                source_job_id: None,
+                blob: scene_blob,
+                format: checked.format,
+                file_name: scene_name,
+                gaussians: checked.gaussians,
+                sh_degree: checked.sh_degree,
+                cameras_blob: cams_blob,
+                cameras_format: cams_format,
+            },
+            AuditEntry {
+                actor: caller.id(),
+                action: "asset.upload".into(),
+                asset_id: None,
+                job_id: None,
+                details: json!({"bytes": size, "gaussians": checked.gaussians, "cameras": n_cams}),
+            },
+        )
+        .await?;
+    st.metrics.uploads.fetch_add(1, Ordering::Relaxed);
+    st.metrics.upload_bytes.fetch_add(used, Ordering::Relaxed);
+    tracing::info!(asset = %asset.id, gaussians = asset.gaussians, "asset uploaded");
+    let mut r = (StatusCode::CREATED, Json(&asset)).into_response();
+    if let Ok(v) = HeaderValue::from_str(&format!("/v1/assets/{}", asset.id)) {
+        r.headers_mut().insert(header::LOCATION, v);
+    }
+    Ok(r)
+}
+
+/// The asset `id` if the caller may read it.
+pub(super) async fn readable(st: &AppState, caller: &Caller, id: Uuid) -> ApiResult<Asset> {
+    let a = st
+        .store
+        .get_asset(id)
+        .await?
+        .ok_or_else(|| ApiError::not_found("asset"))?;
+    caller
+        .may_read(&a.owner)
+        .map_err(|_| ApiError::not_found("asset"))?;
+    Ok(a)
+}
+
+fn parse_id(s: &str) -> ApiResult<Uuid> {
+    s.parse().map_err(|_| ApiError::not_found("asset"))
+}
+
+#[derive(Serialize)]
+struct AssetView {
+    #[serde(flatten)]
+    asset: Asset,
+    /// Watermarked versions of an original.
+    watermarked: Vec<Uuid>,
+    /// The embedding report of a watermarked asset.
+    report: Option<serde_json::Value>,
+}
+
+/// `GET /v1/assets/{id}`.
+pub async fn get_one(
+    State(st): State<AppState>,
+    caller: Caller,
+    Path(id): Path<String>,
+) -> ApiResult<Response> {
+    let a = readable(&st, &caller, parse_id(&id)?).await?;
+    let watermarked = st
+        .store
+        .watermarked_of(a.id)
+        .await?
+        .into_iter()
+        .map(|w| w.id)
+        .collect();
+    let report = st.store.report_of(a.id).await?;
+    Ok(Json(AssetView {
+        asset: a,
+        watermarked,
+        report,
+    })
+    .into_response())
+}
+
+/// `GET /v1/assets/{id}/file` — the scene as uploaded (originals) or as INRIA binary PLY
+/// (watermarked), streamed.
+pub async fn file(
+    State(st): State<AppState>,
+    caller: Caller,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> ApiResult<Response> {
+    let a = readable(&st, &caller, parse_id(&id)?).await?;
+    let etag = format!("\"{}\"", a.sha256);
+    if headers
+        .get(header::IF_NONE_MATCH)
+        .is_some_and(|v| v.as_bytes() == etag.as_bytes())
+    {
+        return Ok(StatusCode::NOT_MODIFIED.into_response());
+    }
+    let path = st.store.blobs().path(&a.sha256)?;
+    let f = tokio::fs::File::open(&path)
+        .await
+        .map_err(ApiError::internal)?;
+    let body = Body::from_stream(tokio_util::io::ReaderStream::new(f));
+    let ext = match a.format.as_str() {
+        "splat" => "splat",
+        "spz" => "spz",
+        _ => "ply",
+    };
+    let mut r = body.into_response();
+    let h = r.headers_mut();
+    h.insert(
+        header::CONTENT_TYPE,
+        HeaderValue::from_static("application/octet-stream"),
+    );
+    h.insert(header::CONTENT_LENGTH, HeaderValue::from(a.size));
+    if let Ok(v) = HeaderValue::from_str(&etag) {
+        h.insert(header::ETAG, v);
+    }
+    if let Ok(v) = HeaderValue::from_str(&format!("attachment; filename=\"{}.{ext}\"", a.id)) {
+        h.insert(header::CONTENT_DISPOSITION, v);
+    }
+    Ok(r)
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AttributionQuery {
+    role: Option<String>,
+    cursor: Option<u32>,
+    limit: Option<u32>,
+}
+
+/// Largest attribution page.
+pub const MAX_PAGE: u32 = 10_000;
+
+async fn watermarked(st: &AppState, caller: &Caller, id: &str) -> ApiResult<Asset> {
+    let a = readable(st, caller, parse_id(id)?).await?;
+    if a.kind != AssetKind::Watermarked {
+        return Err(ApiError::not_found(
+            "attribution (this asset is an original; its watermarked versions have one)",
+        ));
+    }
+    Ok(a)
+}
+
+/// `GET /v1/assets/{id}/attribution?role=&cursor=&limit=` — one record per Gaussian of a
+/// watermarked asset, in index order; `next_cursor` continues.
+pub async fn attribution(
+    State(st): State<AppState>,
+    caller: Caller,
+    Path(id): Path<String>,
+    Query(q): Query<AttributionQuery>,
+) -> ApiResult<Response> {
+    let a = watermarked(&st, &caller, &id).await?;
+    let role = match q.role.as_deref() {
+        None => None,
+        Some("carrier") => Some(Role::Carrier),
+        Some("compensator") => Some(Role::Compensator),
+        Some("untouched") => Some(Role::Untouched),
+        Some(r) => {
+            return Err(ApiError::bad_request(format!(
+                "role '{r}': expected carrier, compensator or untouched"
+            )));
+        }
+    };
+    let limit = q.limit.unwrap_or(1000);
+    if !(1..=MAX_PAGE).contains(&limit) {
+        return Err(ApiError::bad_request(format!(
+            "limit must be 1 to {MAX_PAGE}"
+        )));
+    }
+    let (items, next) = st
+        .store
+        .attribution_page(a.id, role, q.cursor, limit)
+        .await?;
+    Ok(Json(json!({"items": items, "next_cursor": next})).into_response())
+}
+
+/// `GET /v1/assets/{id}/attribution/summary`.
+pub async fn attribution_summary(
+    State(st): State<AppState>,
+    caller: Caller,
+    Path(id): Path<String>,
+) -> ApiResult<Response> {
+    let a = watermarked(&st, &caller, &id).await?;
+    Ok(Json(st.store.attribution_summary(a.id).await?).into_response())
+}

@@ -1,0 +1,78 @@
+//! `/v1/audit` (filtered, paged) and `/v1/audit/verify` (checks the hash chain) for auditors.
+
+use axum::Json;
+use axum::extract::{Query, State};
+use axum::response::{IntoResponse, Response};
+use serde::Deserialize;
+use serde_json::json;
+use uuid::Uuid;
+
+use super::AppState;
+use super::auth::Caller;
+use super::error::{ApiError, ApiResult};
+use crate::store::{AuditFilter, Scope};
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AuditQuery {
+    asset_id: Option<Uuid>,
+    action: Option<String>,
+    actor: Option<String>,
+    /// RFC 3339 UTC, inclusive.
+    since: Option<String>,
+    /// RFC 3339 UTC, exclusive.
+    until: Option<String>,
+    cursor: Option<i64>,
+    limit: Option<u32>,
+}
+
+fn check_time(name: &str, t: &Option<String>) -> ApiResult<()> {
+    // RFC 3339 UTC as stored: 2026-12-01T16:07:47.123Z (a prefix such as a date also works).
+    if let Some(t) = t {
+        let ok = t.len() >= 10
+            && t.len() <= 30
+            && t.bytes()
+                .all(|b| b.is_ascii_digit() || b"-:T.Z".contains(&b))
+            && t.as_bytes()[4] == b'-';
+        if !ok {
+            return Err(ApiError::bad_request(format!(
+                "{name} must be an RFC 3339 UTC time such as 2026-12-01T16:00:00Z"
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// `GET /v1/audit`.
+pub async fn query(
+    State(st): State<AppState>,
+    caller: Caller,
+    Query(q): Query<AuditQuery>,
+) -> ApiResult<Response> {
+    caller.require(&[Scope::Auditor])?;
+    check_time("since", &q.since)?;
+    check_time("until", &q.until)?;
+    let limit = q.limit.unwrap_or(100);
+    if !(1..=1000).contains(&limit) {
+        return Err(ApiError::bad_request("limit must be 1 to 1000"));
+    }
+    let (items, next) = st
+        .store
+        .audit_query(&AuditFilter {
+            asset_id: q.asset_id,
+            action: q.action,
+            actor: q.actor,
+            since: q.since,
+            until: q.until,
+            after_id: q.cursor,
+            limit,
+        })
+        .await?;
+    Ok(Json(json!({"items": items, "next_cursor": next})).into_response())
+}
+
+/// `GET /v1/audit/verify`.
+pub async fn verify_chain(State(st): State<AppState>, caller: Caller) -> ApiResult<Response> {
+    caller.require(&[Scope::Auditor])?;
+    Ok(Json(st.store.verify_audit_chain().await?).into_response())
+}

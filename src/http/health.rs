@@ -1,0 +1,147 @@
+//! `/healthz` (the process answers), `/readyz` (database reachable, workers running) and
+//! `/metrics` (Prometheus text format).
+
+use std::fmt::Write;
+use std::sync::atomic::Ordering;
+
+use axum::Json;
+use axum::extract::State;
+use axum::http::{HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use serde_json::json;
+
+use super::AppState;
+use super::error::{ApiError, ApiResult};
+use crate::store::JobState;
+
+/// `GET /healthz`.
+pub async fn healthz() -> Response {
+    Json(json!({"status": "ok"})).into_response()
+}
+
+/// `GET /readyz`: 200 when the database answers and every worker is running, else 503.
+pub async fn readyz(State(st): State<AppState>) -> ApiResult<Response> {
+    if let Err(e) = st.store.ping().await {
+        return Err(ApiError::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "Not ready",
+            format!("the database does not answer: {e}"),
+        ));
+    }
+    let workers = st.pool.workers.load(Ordering::Relaxed);
+    let alive = st.pool.alive.load(Ordering::Relaxed);
+    if alive < workers {
+        return Err(ApiError::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "Not ready",
+            format!("{alive} of {workers} workers are running"),
+        ));
+    }
+    Ok(Json(json!({"status": "ready", "workers": workers})).into_response())
+}
+
+/// `GET /metrics`.
+pub async fn metrics(State(st): State<AppState>) -> ApiResult<Response> {
+    let counts = st.store.counts().await?;
+    let m = &st.metrics;
+    let mut s = String::new();
+    let mut put = |name: &str, kind: &str, help: &str, rows: &[(String, f64)]| {
+        let _ = writeln!(s, "# HELP {name} {help}\n# TYPE {name} {kind}");
+        for (labels, v) in rows {
+            let _ = writeln!(s, "{name}{labels} {v}");
+        }
+    };
+    let classes: Vec<(String, f64)> = (0..5)
+        .map(|i| {
+            (
+                format!("{{class=\"{}xx\"}}", i + 1),
+                m.responses[i].load(Ordering::Relaxed) as f64,
+            )
+        })
+        .collect();
+    put(
+        "splatmark_http_responses_total",
+        "counter",
+        "HTTP responses by status class.",
+        &classes,
+    );
+    let one = |v: u64| vec![(String::new(), v as f64)];
+    put(
+        "splatmark_uploads_total",
+        "counter",
+        "Assets uploaded.",
+        &one(m.uploads.load(Ordering::Relaxed)),
+    );
+    put(
+        "splatmark_upload_bytes_total",
+        "counter",
+        "Bytes uploaded.",
+        &one(m.upload_bytes.load(Ordering::Relaxed)),
+    );
+    put(
+        "splatmark_verifications_total",
+        "counter",
+        "Verification requests answered.",
+        &one(m.verifications.load(Ordering::Relaxed)),
+    );
+    put(
+        "splatmark_detections_total",
+        "counter",
+        "Verifications that detected a watermark.",
+        &one(m.detections.load(Ordering::Relaxed)),
+    );
+    let jobs: Vec<(String, f64)> = [
+        JobState::Queued,
+        JobState::Running,
+        JobState::Done,
+        JobState::Failed,
+        JobState::Dead,
+        JobState::Cancelled,
+    ]
+    .into_iter()
+    .map(|s| {
+        (
+            format!("{{state=\"{}\"}}", s.as_str()),
+            counts.jobs.get(s) as f64,
+        )
+    })
+    .collect();
+    put("splatmark_jobs", "gauge", "Jobs by state.", &jobs);
+    put(
+        "splatmark_assets",
+        "gauge",
+        "Stored assets.",
+        &one(counts.assets),
+    );
+    let p = &st.pool;
+    put(
+        "splatmark_workers",
+        "gauge",
+        "Configured workers.",
+        &one(p.workers.load(Ordering::Relaxed) as u64),
+    );
+    put(
+        "splatmark_workers_busy",
+        "gauge",
+        "Workers running a job.",
+        &one(p.busy.load(Ordering::Relaxed) as u64),
+    );
+    put(
+        "splatmark_jobs_published_total",
+        "counter",
+        "Results published by this process.",
+        &one(p.published.load(Ordering::Relaxed)),
+    );
+    put(
+        "splatmark_job_failures_total",
+        "counter",
+        "Job attempts failed in this process.",
+        &one(p.failed.load(Ordering::Relaxed)),
+    );
+    let mut r = s.into_response();
+    r.headers_mut().insert(
+        header::CONTENT_TYPE,
+        HeaderValue::from_static("text/plain; version=0.0.4"),
+    );
+    Ok(r)
+}

@@ -1,0 +1,76 @@
+//! `/v1/keys` — API keys, for admins. The token is shown once, in the creation response; only
+//! its hash is stored.
+
+use axum::Json;
+use axum::extract::rejection::JsonRejection;
+use axum::extract::{Path, State};
+use axum::http::StatusCode;
+use axum::response::{IntoResponse, Response};
+use serde::Deserialize;
+use serde_json::json;
+use uuid::Uuid;
+
+use super::AppState;
+use super::auth::Caller;
+use super::error::{ApiError, ApiResult};
+use crate::store::{AuditEntry, Scope};
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NewKey {
+    name: String,
+    scopes: Vec<Scope>,
+}
+
+/// `POST /v1/keys` {name, scopes} → 201 {id, name, scopes, token}.
+pub async fn create(
+    State(st): State<AppState>,
+    caller: Caller,
+    body: Result<Json<NewKey>, JsonRejection>,
+) -> ApiResult<Response> {
+    caller.require(&[Scope::Admin])?;
+    let Json(k) =
+        body.map_err(|e| ApiError::new(e.status(), "Invalid JSON body", e.body_text()))?;
+    let name = k.name.trim();
+    if name.is_empty() || name.len() > 100 || k.scopes.is_empty() {
+        return Err(ApiError::unprocessable(
+            "a key needs a name (1 to 100 characters) and at least one scope",
+        ));
+    }
+    let (key, token) = st.store.create_api_key(name, &k.scopes).await?;
+    st.store
+        .append_audit(AuditEntry {
+            actor: caller.id(),
+            action: "key.create".into(),
+            asset_id: None,
+            job_id: None,
+            details: json!({"key_id": key.id, "name": key.name, "scopes": key.scopes}),
+        })
+        .await?;
+    Ok((
+        StatusCode::CREATED,
+        Json(json!({"id": key.id, "name": key.name, "scopes": key.scopes, "token": token})),
+    )
+        .into_response())
+}
+
+/// `DELETE /v1/keys/{id}` — revokes a key.
+pub async fn revoke(
+    State(st): State<AppState>,
+    caller: Caller,
+    Path(id): Path<String>,
+) -> ApiResult<Response> {
+    caller.require(&[Scope::Admin])?;
+    let id: Uuid = id.parse().map_err(|_| ApiError::not_found("key"))?;
+    st.store.revoke_api_key(id).await?;
+    st.store
+        .append_audit(AuditEntry {
+            actor: caller.id(),
+            action: "key.revoke".into(),
+            asset_id: None,
+            job_id: None,
+            details: json!({"key_id": id}),
+        })
+        .await?;
+    Ok(StatusCode::NO_CONTENT.into_response())
+}

@@ -1,0 +1,157 @@
+//! The HTTP API (axum): one module per resource, one error type ([`error::ApiError`], rendered
+//! as problem+json), bearer API keys with scopes ([`auth`]).
+
+pub mod assets;
+pub mod audit;
+pub mod auth;
+pub mod error;
+pub mod health;
+pub mod jobs;
+pub mod keys;
+pub mod openapi;
+pub mod verify;
+
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use axum::Router;
+use axum::extract::{DefaultBodyLimit, Request, State};
+use axum::middleware::{self, Next};
+use axum::response::Response;
+use axum::routing::{get, post};
+use burn::tensor::Device;
+use tokio::sync::Notify;
+use tower_http::timeout::TimeoutLayer;
+use tower_http::trace::TraceLayer;
+
+use crate::config::Config;
+use crate::decoder::WatermarkModel;
+use crate::queue::{PoolStatus, weights_path};
+use crate::store::Store;
+
+/// What every handler can reach.
+#[derive(Clone)]
+pub struct AppState {
+    pub store: Store,
+    pub cfg: Arc<Config>,
+    /// Wakes idle workers when a job is enqueued.
+    pub wake: Arc<Notify>,
+    pub pool: Arc<PoolStatus>,
+    pub decoders: Arc<Decoders>,
+    pub metrics: Arc<Metrics>,
+}
+
+/// Frozen decoders for verification (CPU, loaded on first use, one per message length).
+pub struct Decoders {
+    device: Device,
+    models: Mutex<HashMap<usize, WatermarkModel>>,
+}
+
+impl Decoders {
+    pub fn new(device: Device) -> Self {
+        Self {
+            device,
+            models: Mutex::new(HashMap::new()),
+        }
+    }
+
+    /// Runs `f` with the decoder for `bits` (blocking: call from a blocking thread).
+    pub fn with<T>(
+        &self,
+        cfg: &Config,
+        bits: usize,
+        f: impl FnOnce(&WatermarkModel, &Device) -> T,
+    ) -> Result<T, crate::decoder::artifact::WeightsError> {
+        let mut models = self.models.lock().unwrap_or_else(|p| p.into_inner());
+        let m = match models.entry(bits) {
+            std::collections::hash_map::Entry::Occupied(e) => e.into_mut(),
+            std::collections::hash_map::Entry::Vacant(e) => e.insert(WatermarkModel::resolve(
+                weights_path(cfg, bits).as_deref(),
+                bits,
+                &self.device,
+            )?),
+        };
+        Ok(f(m, &self.device))
+    }
+}
+
+/// Request counters for `/metrics`.
+#[derive(Debug, Default)]
+pub struct Metrics {
+    /// Responses by status class 1xx..5xx (index 0..4).
+    pub responses: [AtomicU64; 5],
+    pub uploads: AtomicU64,
+    pub upload_bytes: AtomicU64,
+    pub verifications: AtomicU64,
+    pub detections: AtomicU64,
+}
+
+async fn count(State(m): State<Arc<Metrics>>, req: Request, next: Next) -> Response {
+    let r = next.run(req).await;
+    let class = (r.status().as_u16() / 100).clamp(1, 5) as usize - 1;
+    m.responses[class].fetch_add(1, Ordering::Relaxed);
+    r
+}
+
+/// Every route (method, path) — the OpenAPI spec must list exactly these (tested).
+pub const ROUTES: &[(&str, &str)] = &[
+    ("post", "/v1/assets"),
+    ("get", "/v1/assets/{id}"),
+    ("get", "/v1/assets/{id}/file"),
+    ("post", "/v1/assets/{id}/watermark"),
+    ("get", "/v1/assets/{id}/attribution"),
+    ("get", "/v1/assets/{id}/attribution/summary"),
+    ("get", "/v1/jobs/{id}"),
+    ("delete", "/v1/jobs/{id}"),
+    ("post", "/v1/verify"),
+    ("get", "/v1/audit"),
+    ("get", "/v1/audit/verify"),
+    ("post", "/v1/keys"),
+    ("delete", "/v1/keys/{id}"),
+    ("get", "/healthz"),
+    ("get", "/readyz"),
+    ("get", "/metrics"),
+    ("get", "/openapi.json"),
+];
+
+/// The router with its middleware.
+pub fn router(state: AppState) -> Router {
+    let metrics = state.metrics.clone();
+    Router::new()
+        .route(
+            "/v1/assets",
+            // Uploads are counted against `max_upload_bytes` while they stream.
+            post(assets::upload).layer(DefaultBodyLimit::disable()),
+        )
+        .route("/v1/assets/{id}", get(assets::get_one))
+        .route("/v1/assets/{id}/file", get(assets::file))
+        .route("/v1/assets/{id}/watermark", post(jobs::watermark))
+        .route("/v1/assets/{id}/attribution", get(assets::attribution))
+        .route(
+            "/v1/assets/{id}/attribution/summary",
+            get(assets::attribution_summary),
+        )
+        .route("/v1/jobs/{id}", get(jobs::get_one).delete(jobs::cancel))
+        .route(
+            "/v1/verify",
+            post(verify::verify).layer(DefaultBodyLimit::disable()),
+        )
+        .route("/v1/audit", get(audit::query))
+        .route("/v1/audit/verify", get(audit::verify_chain))
+        .route("/v1/keys", post(keys::create))
+        .route("/v1/keys/{id}", axum::routing::delete(keys::revoke))
+        .route("/healthz", get(health::healthz))
+        .route("/readyz", get(health::readyz))
+        .route("/metrics", get(health::metrics))
+        .route("/openapi.json", get(openapi::json))
+        .fallback(|| async { error::ApiError::not_found("route") })
+        .with_state(state)
+        .layer(middleware::from_fn_with_state(metrics, count))
+        .layer(TimeoutLayer::with_status_code(
+            axum::http::StatusCode::REQUEST_TIMEOUT,
+            Duration::from_secs(600),
+        ))
+        .layer(TraceLayer::new_for_http())
+}

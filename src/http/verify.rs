@@ -1,0 +1,229 @@
+//! `POST /v1/verify` — a dispute: rendered images (PNG/JPEG, multipart field `image`, repeated)
+//! and optionally `asset_id`. The images are decoded once per message length (logits averaged
+//! over the images) and tested against the asset's message — or, without an asset id, against
+//! every registered message — with p-values corrected for the number of candidates.
+
+use std::collections::BTreeMap;
+use std::sync::atomic::Ordering;
+
+use axum::Json;
+use axum::extract::{Multipart, State};
+use axum::response::{IntoResponse, Response};
+use serde_json::json;
+use sha2::{Digest, Sha256};
+use uuid::Uuid;
+
+use super::AppState;
+use super::assets::multipart_err;
+use super::auth::Caller;
+use super::error::{ApiError, ApiResult};
+use crate::decoder::eval::decode_images;
+use crate::store::{AssetKind, AuditEntry, NewVerification, Scope};
+use crate::verify::dispute::{Candidate, decoded_hex, judge};
+
+/// Largest image file accepted for verification.
+const MAX_IMAGE_BYTES: usize = 64 << 20;
+/// Candidates listed in a response (the decision uses all of them).
+const LIST: usize = 10;
+
+fn decode_image(bytes: &[u8], i: usize, max_side: u32) -> ApiResult<image::RgbImage> {
+    let mut r = image::ImageReader::new(std::io::Cursor::new(bytes))
+        .with_guessed_format()
+        .map_err(ApiError::internal)?;
+    match r.format() {
+        Some(image::ImageFormat::Png | image::ImageFormat::Jpeg) => {}
+        _ => {
+            return Err(ApiError::unsupported(format!(
+                "image {i}: only PNG and JPEG images can be verified"
+            )));
+        }
+    }
+    let mut limits = image::Limits::default();
+    limits.max_image_width = Some(max_side);
+    limits.max_image_height = Some(max_side);
+    r.limits(limits);
+    let img = r
+        .decode()
+        .map_err(|e| ApiError::unprocessable(format!("image {i}: {e}")))?
+        .to_rgb8();
+    if img.width() < 64 || img.height() < 64 {
+        return Err(ApiError::unprocessable(format!(
+            "image {i} is {}×{}; the decoder needs at least 64×64 pixels",
+            img.width(),
+            img.height()
+        )));
+    }
+    Ok(img)
+}
+
+/// `POST /v1/verify`.
+pub async fn verify(
+    State(st): State<AppState>,
+    caller: Caller,
+    mut mp: Multipart,
+) -> ApiResult<Response> {
+    caller.require(&[Scope::Verifier, Scope::Owner, Scope::Auditor])?;
+    let mut images = vec![];
+    let mut hashes = vec![];
+    let mut asset_id: Option<Uuid> = None;
+    while let Some(mut field) = mp.next_field().await.map_err(multipart_err)? {
+        match field.name().unwrap_or_default() {
+            "image" => {
+                if images.len() == st.cfg.max_verify_images {
+                    return Err(ApiError::too_large(format!(
+                        "at most {} images per verification",
+                        st.cfg.max_verify_images
+                    )));
+                }
+                let mut bytes = Vec::new();
+                while let Some(chunk) = field.chunk().await.map_err(multipart_err)? {
+                    if bytes.len() + chunk.len() > MAX_IMAGE_BYTES {
+                        return Err(ApiError::too_large(format!(
+                            "image {} is larger than {MAX_IMAGE_BYTES} bytes",
+                            images.len()
+                        )));
+                    }
+                    bytes.extend_from_slice(&chunk);
+                }
+                hashes.push(hex::encode(Sha256::digest(&bytes)));
+                images.push(bytes);
+            }
+            "asset_id" => {
+                let t = field.text().await.map_err(multipart_err)?;
+                asset_id = Some(t.trim().parse().map_err(|_| {
+                    ApiError::bad_request(format!("asset_id '{}' is not a UUID", t.trim()))
+                })?);
+            }
+            other => {
+                return Err(ApiError::bad_request(format!(
+                    "unexpected multipart field '{other}' (expected 'image' and optionally 'asset_id')"
+                )));
+            }
+        }
+    }
+    if images.is_empty() {
+        return Err(ApiError::bad_request(
+            "no 'image' field: submit at least one rendered image",
+        ));
+    }
+    // Candidates: the asset's message (or its watermarked versions'), or every registered one.
+    let candidates: Vec<Candidate> = match asset_id {
+        Some(id) => {
+            let a = st
+                .store
+                .get_asset(id)
+                .await?
+                .ok_or_else(|| ApiError::not_found("asset"))?;
+            let ids = match a.kind {
+                AssetKind::Watermarked => vec![a.id],
+                AssetKind::Original => st
+                    .store
+                    .watermarked_of(a.id)
+                    .await?
+                    .into_iter()
+                    .map(|w| w.id)
+                    .collect(),
+            };
+            let mut c = vec![];
+            for id in ids {
+                if let Some(message) = st.store.message_of(id).await? {
+                    c.push(Candidate {
+                        asset_id: id,
+                        message,
+                    });
+                }
+            }
+            if c.is_empty() {
+                return Err(ApiError::unprocessable(
+                    "this asset has no registered watermark (no finished watermarking job)",
+                ));
+            }
+            c
+        }
+        None => st
+            .store
+            .all_messages()
+            .await?
+            .into_iter()
+            .map(|(asset_id, message)| Candidate { asset_id, message })
+            .collect(),
+    };
+    let mut lengths: Vec<usize> = candidates.iter().map(|c| c.message.len()).collect();
+    lengths.sort_unstable();
+    lengths.dedup();
+    if lengths.is_empty() {
+        lengths.push(32);
+    }
+    let max_side = st.cfg.max_image_side;
+    let decoders = st.decoders.clone();
+    let cfg = st.cfg.clone();
+    let n_images = images.len();
+    let decoded = tokio::task::spawn_blocking(move || {
+        let imgs = images
+            .iter()
+            .enumerate()
+            .map(|(i, b)| decode_image(b, i, max_side))
+            .collect::<ApiResult<Vec<_>>>()?;
+        let mut out = BTreeMap::new();
+        let mut logits = BTreeMap::new();
+        for n in lengths {
+            let r = decoders
+                .with(&cfg, n, |m, d| decode_images(m, &imgs, d))
+                .map_err(ApiError::internal)?;
+            out.insert(n, r.logits.iter().map(|&z| z > 0.0).collect::<Vec<bool>>());
+            logits.insert(
+                n,
+                json!({"confidence": r.confidence, "per_image": r.per_image}),
+            );
+        }
+        Ok::<_, ApiError>((out, logits))
+    })
+    .await
+    .map_err(ApiError::internal)??;
+    let (decoded, detail) = decoded;
+    let verdict = judge(&decoded, &candidates, st.cfg.fpr, LIST).map_err(ApiError::internal)?;
+    let result = json!({
+        "images": n_images,
+        "asset_id": asset_id,
+        "decoded": decoded_hex(&decoded),
+        "decoding": detail,
+        "candidates_tested": verdict.candidates_tested,
+        "detected": verdict.detected,
+        "fpr": verdict.fpr,
+        "best": verdict.best,
+        "results": verdict.results,
+    });
+    let (vid, audit_id) = st
+        .store
+        .record_verification(
+            NewVerification {
+                actor: caller.id(),
+                asset_id,
+                images: n_images as u32,
+                image_sha256: hashes,
+                result: result.clone(),
+            },
+            AuditEntry {
+                actor: caller.id(),
+                action: "verify".into(),
+                asset_id,
+                job_id: None,
+                details: json!({
+                    "images": n_images,
+                    "detected": verdict.detected,
+                    "candidates_tested": verdict.candidates_tested,
+                    "best_asset": verdict.best.as_ref().map(|b| b.asset_id),
+                    "best_p_value_corrected": verdict.best.as_ref().map(|b| b.detection.p_value_corrected),
+                }),
+            },
+        )
+        .await?;
+    st.metrics.verifications.fetch_add(1, Ordering::Relaxed);
+    if verdict.detected {
+        st.metrics.detections.fetch_add(1, Ordering::Relaxed);
+    }
+    let mut body = result;
+    body["verification_id"] = json!(vid);
+    body["audit_id"] = json!(audit_id);
+    Ok(Json(body).into_response())
+}

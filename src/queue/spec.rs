@@ -1,0 +1,173 @@
+//! What a watermarking job runs: the request's options resolved against the server's defaults
+//! at enqueue time and stored in full with the job, so the job row says exactly what ran.
+
+use serde::{Deserialize, Serialize};
+
+use crate::config::Config;
+use crate::embed::pipeline::EmbedOptions;
+use crate::scene::orbit::OrbitOptions;
+
+/// Options a client may send with `POST /v1/assets/{id}/watermark` (all optional).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct JobOptions {
+    /// Orbit views (used when the asset has no cameras, or when `use_cameras` is false):
+    /// count, elevations, width, height, fov, up axis.
+    pub orbit: Option<serde_json::Value>,
+    /// Train through the uploaded cameras when there are some (default true).
+    pub use_cameras: Option<bool>,
+    /// Resolution of the renders when training through uploaded cameras (aspect kept when one
+    /// side is given).
+    pub width: Option<u32>,
+    pub height: Option<u32>,
+    /// Every N-th view is held out of training (0: none).
+    pub holdout_every: Option<usize>,
+    /// Finetuning steps.
+    pub steps: Option<usize>,
+    /// The full embedding options (partial objects keep the defaults), as `splatmark embed
+    /// --config` reads them.
+    pub embed: Option<serde_json::Value>,
+}
+
+/// A fully resolved job.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct JobSpec {
+    pub orbit: OrbitOptions,
+    pub use_cameras: bool,
+    pub width: Option<u32>,
+    pub height: Option<u32>,
+    pub holdout_every: usize,
+    pub embed: EmbedOptions,
+}
+
+/// Largest render side a job may ask for.
+pub const MAX_SIDE: u32 = 4096;
+/// Most finetuning steps a job may ask for.
+pub const MAX_STEPS: usize = 100_000;
+/// Most views a job may ask for.
+pub const MAX_VIEWS: usize = 1000;
+
+impl JobOptions {
+    /// Resolves against `cfg`; the error says which option is wrong.
+    pub fn resolve(&self, cfg: &Config) -> Result<JobSpec, String> {
+        let mut embed: EmbedOptions = match &self.embed {
+            Some(v) => {
+                serde_json::from_value(v.clone()).map_err(|e| format!("options.embed: {e}"))?
+            }
+            None => EmbedOptions::default(),
+        };
+        if self.embed.is_none() {
+            embed.finetune.steps = cfg.steps;
+        }
+        if let Some(s) = self.steps {
+            embed.finetune.steps = s;
+        }
+        if !(1..=MAX_STEPS).contains(&embed.finetune.steps) {
+            return Err(format!("options.steps must be 1 to {MAX_STEPS}"));
+        }
+        let mut orbit = OrbitOptions {
+            count: cfg.views.orbit,
+            width: cfg.views.width,
+            height: cfg.views.height,
+            ..OrbitOptions::default()
+        };
+        if let Some(v) = &self.orbit {
+            // Fields the client names override the server's defaults.
+            let mut base = serde_json::to_value(&orbit).map_err(|e| e.to_string())?;
+            let (Some(b), Some(o)) = (base.as_object_mut(), v.as_object()) else {
+                return Err("options.orbit must be an object".into());
+            };
+            for (k, x) in o {
+                b.insert(k.clone(), x.clone());
+            }
+            orbit = serde_json::from_value(base).map_err(|e| format!("options.orbit: {e}"))?;
+        }
+        orbit
+            .validate()
+            .map_err(|e| format!("options.orbit: {e}"))?;
+        if orbit.count > MAX_VIEWS || orbit.width > MAX_SIDE || orbit.height > MAX_SIDE {
+            return Err(format!(
+                "options.orbit: at most {MAX_VIEWS} views of at most {MAX_SIDE} px a side"
+            ));
+        }
+        for (name, side) in [("width", self.width), ("height", self.height)] {
+            if let Some(s) = side
+                && !(16..=MAX_SIDE).contains(&s)
+            {
+                return Err(format!("options.{name} must be 16 to {MAX_SIDE}"));
+            }
+        }
+        Ok(JobSpec {
+            orbit,
+            use_cameras: self.use_cameras.unwrap_or(true),
+            width: self.width,
+            height: self.height,
+            holdout_every: self.holdout_every.unwrap_or(8),
+            embed,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    #[test]
+    fn defaults_come_from_the_server_config() {
+        let cfg = Config::default();
+        let s = JobOptions::default().resolve(&cfg).unwrap();
+        assert_eq!(s.orbit.count, cfg.views.orbit);
+        assert_eq!(s.orbit.width, cfg.views.width);
+        assert_eq!(s.embed.finetune.steps, cfg.steps);
+        assert!(s.use_cameras);
+        assert_eq!(s.holdout_every, 8);
+    }
+
+    #[test]
+    fn named_fields_override_and_the_rest_stay() {
+        let o: JobOptions = serde_json::from_value(json!({
+            "orbit": {"count": 6, "width": 64},
+            "steps": 7,
+            "embed": {"no_group_mask": true}
+        }))
+        .unwrap();
+        let s = o.resolve(&Config::default()).unwrap();
+        assert_eq!(s.orbit.count, 6);
+        assert_eq!(s.orbit.width, 64);
+        assert_eq!(s.orbit.height, Config::default().views.height);
+        assert_eq!(s.embed.finetune.steps, 7);
+        assert!(s.embed.no_group_mask);
+        // The spec survives the job row.
+        let back: JobSpec = serde_json::from_value(serde_json::to_value(&s).unwrap()).unwrap();
+        assert_eq!(back, s);
+    }
+
+    #[test]
+    fn bad_options_are_named() {
+        let cfg = Config::default();
+        for (v, needle) in [
+            (json!({"steps": 0}), "steps"),
+            (json!({"orbit": {"count": 0}}), "orbit"),
+            (json!({"orbit": {"colour": 1}}), "orbit"),
+            (json!({"width": 100000}), "width"),
+            (json!({"embed": {"finetune": {"steps": "many"}}}), "embed"),
+        ] {
+            let o: JobOptions = serde_json::from_value(v).unwrap();
+            let e = o.resolve(&cfg).unwrap_err();
+            assert!(e.contains(needle), "{e}");
+        }
+        assert!(serde_json::from_value::<JobOptions>(json!({"stepz": 3})).is_err());
+    }
+
+    #[test]
+    fn a_spec_survives_the_job_row_exactly() {
+        // Job rows hold the spec as JSON text; idempotent replays compare it with a fresh one,
+        // so floats must print and parse back bit-exactly (serde_json's float_roundtrip).
+        let s = JobOptions::default().resolve(&Config::default()).unwrap();
+        let v = serde_json::to_value(&s).unwrap();
+        let back: serde_json::Value =
+            serde_json::from_str(&serde_json::to_string(&v).unwrap()).unwrap();
+        assert_eq!(back, v);
+    }
+}

@@ -1,0 +1,413 @@
+//! The worker pool: each worker claims a job under a lease, runs the embedding on a blocking
+//! thread while a heartbeat extends the lease and records phase and progress, and publishes the
+//! result in one transaction that only succeeds while it still holds the lease — so a result
+//! is published exactly once even when a worker dies mid-job and the job is retried.
+
+use std::ops::ControlFlow;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
+use std::time::{Duration, Instant};
+
+use burn::tensor::Device;
+use serde_json::json;
+use tokio::sync::{Notify, watch};
+use tokio::task::JoinHandle;
+use tracing::Instrument;
+
+use super::run::{JobError, execute};
+use super::spec::JobSpec;
+use crate::config::Config;
+use crate::decoder::WatermarkModel;
+use crate::embed::pipeline::{EmbedError, Phase, Progress};
+use crate::scene::Limits;
+use crate::store::{
+    AssetKind, AuditEntry, BlobRef, Claimed, NewAsset, ProgressUpdate, Store, StoreError,
+};
+
+/// One worker: a name (in logs, the job row and the audit log) and the device of its networks.
+#[derive(Clone, Debug)]
+pub struct WorkerSpec {
+    pub name: String,
+    pub device: Device,
+}
+
+/// Counters for `/metrics` and `/readyz`.
+#[derive(Debug, Default)]
+pub struct PoolStatus {
+    pub workers: AtomicUsize,
+    pub alive: AtomicUsize,
+    pub busy: AtomicUsize,
+    pub published: AtomicU64,
+    pub failed: AtomicU64,
+}
+
+/// Running workers.
+pub struct Pool {
+    pub status: Arc<PoolStatus>,
+    handles: Vec<JoinHandle<()>>,
+}
+
+impl Pool {
+    /// Waits for every worker to stop (after the shutdown signal; a running job is cancelled
+    /// and left to be re-queued when its lease expires).
+    pub async fn join(self) {
+        for h in self.handles {
+            if let Err(e) = h.await {
+                tracing::error!(error = %e, "worker task failed");
+            }
+        }
+    }
+}
+
+/// Shared by the workers.
+struct Ctx {
+    store: Store,
+    cfg: Arc<Config>,
+    wake: Arc<Notify>,
+    status: Arc<PoolStatus>,
+    shutdown: watch::Receiver<bool>,
+}
+
+/// Starts `workers`.
+pub fn start(
+    store: Store,
+    cfg: Arc<Config>,
+    workers: Vec<WorkerSpec>,
+    wake: Arc<Notify>,
+    shutdown: watch::Receiver<bool>,
+) -> Pool {
+    let status = Arc::new(PoolStatus::default());
+    status.workers.store(workers.len(), Ordering::Relaxed);
+    let ctx = Arc::new(Ctx {
+        store,
+        cfg,
+        wake,
+        status: status.clone(),
+        shutdown,
+    });
+    let handles = workers
+        .into_iter()
+        .map(|w| tokio::spawn(worker_loop(ctx.clone(), w)))
+        .collect();
+    Pool { status, handles }
+}
+
+/// The decoder weights for `bits`: `weights_dir/decoder-{bits}.bpk` when present, else shipped.
+pub fn weights_path(cfg: &Config, bits: usize) -> Option<PathBuf> {
+    cfg.weights_dir
+        .as_ref()
+        .map(|d| d.join(format!("decoder-{bits}.bpk")))
+        .filter(|p| p.is_file())
+}
+
+/// Message lengths this server can embed and verify.
+pub fn available_bits(cfg: &Config) -> Vec<usize> {
+    [32, 48, 64]
+        .into_iter()
+        .filter(|&b| weights_path(cfg, b).is_some() || crate::decoder::artifact::is_shipped(b))
+        .collect()
+}
+
+async fn worker_loop(ctx: Arc<Ctx>, w: WorkerSpec) {
+    ctx.status.alive.fetch_add(1, Ordering::Relaxed);
+    let lease = Duration::from_secs(ctx.cfg.lease_seconds);
+    let mut shutdown = ctx.shutdown.clone();
+    let mut last_sweep: Option<Instant> = None;
+    tracing::info!(worker = %w.name, device = ?w.device, "worker started");
+    while !*shutdown.borrow() {
+        if last_sweep.is_none_or(|t| t.elapsed() >= lease / 2) {
+            match ctx.store.requeue_expired().await {
+                Ok(0) => {}
+                Ok(n) => {
+                    tracing::warn!(worker = %w.name, jobs = n, "re-queued jobs whose lease expired")
+                }
+                Err(e) => tracing::error!(error = %e, "lease sweep failed"),
+            }
+            last_sweep = Some(Instant::now());
+        }
+        match ctx.store.claim(&w.name, lease).await {
+            Ok(Some(c)) => {
+                ctx.status.busy.fetch_add(1, Ordering::Relaxed);
+                let span = tracing::info_span!("job", id = %c.job.id, worker = %w.name, attempt = c.job.attempts);
+                run_job(&ctx, &w, c).instrument(span).await;
+                ctx.status.busy.fetch_sub(1, Ordering::Relaxed);
+            }
+            Ok(None) => {
+                tokio::select! {
+                    _ = ctx.wake.notified() => {}
+                    _ = tokio::time::sleep(Duration::from_secs(1)) => {}
+                    _ = shutdown.changed() => {}
+                }
+            }
+            Err(e) => {
+                tracing::error!(worker = %w.name, error = %e, "claim failed");
+                tokio::time::sleep(Duration::from_secs(1)).await;
+            }
+        }
+    }
+    ctx.status.alive.fetch_sub(1, Ordering::Relaxed);
+    tracing::info!(worker = %w.name, "worker stopped");
+}
+
+/// Progress of the running job as the heartbeat reports it.
+fn update(p: &Progress, started: &mut Option<Instant>) -> ProgressUpdate {
+    let phase = match p.phase {
+        Phase::Targets => "targets",
+        Phase::Plan => "plan",
+        Phase::Finetune => "finetune",
+        Phase::Done => "publish",
+    };
+    let eta_seconds = match (p.phase, *started) {
+        (Phase::Finetune, Some(t0)) if p.step > 0 => {
+            let per_step = t0.elapsed().as_secs_f64() / p.step as f64;
+            Some(per_step * p.total.saturating_sub(p.step) as f64)
+        }
+        _ => None,
+    };
+    if p.phase == Phase::Plan || (p.phase == Phase::Finetune && started.is_none()) {
+        *started = Some(Instant::now());
+    }
+    ProgressUpdate {
+        phase: phase.into(),
+        step: p.step as u64,
+        total: p.total as u64,
+        eta_seconds,
+    }
+}
+
+async fn run_job(ctx: &Ctx, w: &WorkerSpec, c: Claimed) {
+    let job = c.job;
+    let token = c.lease_token;
+    tracing::info!(asset = %job.asset_id, bits = job.bits, "job claimed");
+    let lease = Duration::from_secs(ctx.cfg.lease_seconds);
+
+    let prepared = (|| -> Result<_, String> {
+        let spec: JobSpec = serde_json::from_value(job.options.clone())
+            .map_err(|e| format!("the job's options cannot be read: {e}"))?;
+        Ok(spec)
+    })();
+    let asset = match ctx.store.get_asset(job.asset_id).await {
+        Ok(Some(a)) => a,
+        Ok(None) => return fail(ctx, job.id, token, "the asset no longer exists").await,
+        Err(e) => return fail(ctx, job.id, token, &e.to_string()).await,
+    };
+    let spec = match prepared {
+        Ok(s) => s,
+        Err(e) => return fail(ctx, job.id, token, &e).await,
+    };
+    let (scene_path, cams_path, tmp) = match (|| {
+        let s = ctx.store.blobs().path(&asset.sha256)?;
+        let c = match &asset.cameras_sha256 {
+            Some(h) => Some(ctx.store.blobs().path(h)?),
+            None => None,
+        };
+        let t = ctx.store.blobs().temp_file()?;
+        Ok::<_, StoreError>((s, c, t))
+    })() {
+        Ok(x) => x,
+        Err(e) => return fail(ctx, job.id, token, &e.to_string()).await,
+    };
+
+    let cancel = Arc::new(AtomicBool::new(false));
+    let (ptx, prx) = watch::channel::<Option<ProgressUpdate>>(None);
+    let weights = weights_path(&ctx.cfg, job.bits as usize);
+    let device = w.device.clone();
+    let limits = Limits {
+        max_gaussians: ctx.cfg.max_gaussians,
+        max_file_bytes: None,
+    };
+    let format = asset.format.clone();
+    let message = c.message.clone();
+    let bits = job.bits as usize;
+    let cancel_b = cancel.clone();
+    let mut blocking = tokio::task::spawn_blocking(move || {
+        let mut tmp = tmp;
+        let r = (|| {
+            let bytes = std::fs::read(&scene_path)
+                .map_err(|e| JobError::Scene(crate::scene::SceneError::IoPlain(e)))?;
+            let model = WatermarkModel::resolve(weights.as_deref(), bits, &device.autodiff())
+                .map_err(|e| JobError::Decoder(e.to_string()))?;
+            let mut out = std::io::BufWriter::new(tmp.as_file_mut());
+            let mut started = None;
+            execute(
+                &bytes,
+                &format,
+                cams_path.as_deref(),
+                &spec,
+                &message,
+                &model,
+                &limits,
+                &mut out,
+                |p| {
+                    let _ = ptx.send(Some(update(&p, &mut started)));
+                    if cancel_b.load(Ordering::Relaxed) {
+                        ControlFlow::Break(())
+                    } else {
+                        ControlFlow::Continue(())
+                    }
+                },
+            )
+        })();
+        (r, tmp)
+    });
+
+    let mut beat = tokio::time::interval(lease / 3);
+    beat.tick().await;
+    let mut shutdown = ctx.shutdown.clone();
+    let mut lost = false;
+    let (result, tmp) = loop {
+        tokio::select! {
+            r = &mut blocking => match r {
+                Ok(x) => break x,
+                Err(e) => {
+                    let msg = format!("the embedding thread failed: {e}");
+                    return fail(ctx, job.id, token, &msg).await;
+                }
+            },
+            _ = beat.tick() => {
+                let p = prx.borrow().clone();
+                match ctx.store.heartbeat(job.id, token, lease, p.as_ref()).await {
+                    Ok(()) => {}
+                    Err(StoreError::LeaseLost) => {
+                        tracing::warn!("lease lost (cancelled, or expired and taken over): stopping");
+                        lost = true;
+                        cancel.store(true, Ordering::Relaxed);
+                    }
+                    Err(e) => tracing::error!(error = %e, "heartbeat failed"),
+                }
+            },
+            _ = shutdown.changed() => {
+                tracing::warn!("shutting down: the job stops and is re-queued when its lease expires");
+                cancel.store(true, Ordering::Relaxed);
+            }
+        }
+    };
+    let out = match result {
+        Ok(out) if !lost => out,
+        Ok(_) | Err(JobError::Embed(EmbedError::Cancelled)) => {
+            tracing::info!("job stopped before publishing");
+            return;
+        }
+        Err(e) => return fail(ctx, job.id, token, &e.to_string()).await,
+    };
+    // Record the final progress (phase "publish", step = total) and check the lease is still ours.
+    let last = prx.borrow().clone();
+    match ctx
+        .store
+        .heartbeat(job.id, token, lease, last.as_ref())
+        .await
+    {
+        Ok(()) => {}
+        Err(StoreError::LeaseLost) => {
+            tracing::warn!("lease lost before publishing: the result is discarded");
+            return;
+        }
+        Err(e) => tracing::error!(error = %e, "heartbeat failed"),
+    }
+    let blobs = ctx.store.blobs().clone();
+    let committed = tokio::task::spawn_blocking(move || blobs.commit(tmp)).await;
+    let blob = match committed {
+        Ok(Ok(b)) => b,
+        Ok(Err(e)) => {
+            return fail(
+                ctx,
+                job.id,
+                token,
+                &format!("storing the scene failed: {e}"),
+            )
+            .await;
+        }
+        Err(e) => {
+            return fail(
+                ctx,
+                job.id,
+                token,
+                &format!("storing the scene failed: {e}"),
+            )
+            .await;
+        }
+    };
+    let cameras_blob = match &asset.cameras_sha256 {
+        Some(h) => match ctx
+            .store
+            .blobs()
+            .path(h)
+            .and_then(|p| Ok(std::fs::metadata(p)?.len()))
+        {
+            Ok(size) => Some(BlobRef {
+                sha256: h.clone(),
+                size,
+            }),
+            Err(e) => return fail(ctx, job.id, token, &format!("the cameras blob: {e}")).await,
+        },
+        None => None,
+    };
+    let stem = asset
+        .file_name
+        .as_deref()
+        .and_then(|n| {
+            n.rsplit_once('.')
+                .map(|(s, _)| s.to_string())
+                .or(Some(n.to_string()))
+        })
+        .unwrap_or_else(|| asset.id.to_string());
+    let new = NewAsset {
+        owner: job.owner.clone(),
+        kind: AssetKind::Watermarked,
+        parent_id: Some(asset.id),
+        source_job_id: Some(job.id),
+        blob,
+        format: "ply".into(),
+        file_name: Some(format!("{stem}-watermarked.ply")),
+        gaussians: out.gaussians,
+        sh_degree: out.sh_degree,
+        cameras_blob,
+        cameras_format: asset.cameras_format.clone(),
+    };
+    let carriers = out.report.get("carriers").cloned().unwrap_or_default();
+    let audit = AuditEntry {
+        actor: format!("worker:{}", w.name),
+        action: "watermark.publish".into(),
+        asset_id: Some(asset.id),
+        job_id: Some(job.id),
+        details: json!({
+            "bits": job.bits,
+            "gaussians": out.gaussians,
+            "carriers": carriers,
+            "train_views": out.train_views,
+            "held_out_views": out.held_out_views,
+        }),
+    };
+    match ctx
+        .store
+        .publish_result(
+            job.id,
+            token,
+            new,
+            &c.message,
+            &out.records,
+            out.report,
+            audit,
+        )
+        .await
+    {
+        Ok(a) => {
+            ctx.status.published.fetch_add(1, Ordering::Relaxed);
+            tracing::info!(result = %a.id, "job published");
+        }
+        Err(StoreError::LeaseLost) => {
+            tracing::warn!("lease lost before publishing: the result is discarded")
+        }
+        Err(e) => fail(ctx, job.id, token, &format!("publishing failed: {e}")).await,
+    }
+}
+
+async fn fail(ctx: &Ctx, job: uuid::Uuid, token: uuid::Uuid, error: &str) {
+    ctx.status.failed.fetch_add(1, Ordering::Relaxed);
+    match ctx.store.fail(job, token, error).await {
+        Ok(state) => tracing::warn!(%error, ?state, "job failed"),
+        Err(StoreError::LeaseLost) => tracing::warn!(%error, "job failed after its lease was lost"),
+        Err(e) => tracing::error!(%error, store_error = %e, "recording a job failure failed"),
+    }
+}

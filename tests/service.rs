@@ -1,0 +1,739 @@
+//! The service end to end: each test starts the real server (`splatmark::app::App`) on
+//! 127.0.0.1:0 with its own temporary database and blob folder, and talks HTTP to it.
+
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use reqwest::StatusCode;
+use reqwest::multipart::{Form, Part};
+use serde_json::{Value, json};
+
+use splatmark::app::App;
+use splatmark::config::Config;
+use splatmark::embed::pipeline::split_views;
+use splatmark::queue::JobSpec;
+use splatmark::render::RenderOptions;
+use splatmark::scene::orbit::orbit_cameras;
+use splatmark::scene::synthetic::object_scene;
+use splatmark::scene::{Gaussians, Limits, read_scene_bytes, write_ply};
+use splatmark::store::MasterKey;
+use splatmark::verify::eval::render_views;
+
+/// A running server with its own data folder and an HTTP client.
+struct TestApp {
+    app: Option<App>,
+    base: String,
+    client: reqwest::Client,
+    dir: tempfile::TempDir,
+    /// The bootstrap admin token (read from DATA_DIR/admin.token, as an operator would).
+    admin: String,
+}
+
+struct Keys {
+    owner: String,
+    verifier: String,
+    auditor: String,
+}
+
+fn config(dir: &Path) -> Config {
+    Config {
+        bind: "127.0.0.1:0".parse().unwrap(),
+        data_dir: dir.join("data"),
+        workers: Some(1),
+        device: splatmark::config::DevicePolicy::Cpu,
+        ..Config::default()
+    }
+}
+
+impl TestApp {
+    async fn start() -> Self {
+        Self::start_with(|_| {}).await
+    }
+
+    async fn start_with(f: impl FnOnce(&mut Config)) -> Self {
+        let dir = tempfile::tempdir().unwrap();
+        let mut cfg = config(dir.path());
+        f(&mut cfg);
+        let master = MasterKey::generate().to_hex();
+        Self::boot(dir, cfg, master, None).await
+    }
+
+    async fn boot(
+        dir: tempfile::TempDir,
+        cfg: Config,
+        master: String,
+        workers: Option<Vec<splatmark::queue::WorkerSpec>>,
+    ) -> Self {
+        let app = App::start(cfg.clone(), MasterKey::from_hex(&master).unwrap(), workers)
+            .await
+            .expect("the server starts");
+        let admin = std::fs::read_to_string(cfg.data_dir.join("admin.token"))
+            .expect("the first start writes an admin token")
+            .trim()
+            .to_string();
+        Self {
+            base: format!("http://{}", app.addr),
+            app: Some(app),
+            client: reqwest::Client::new(),
+            dir,
+            admin,
+        }
+    }
+
+    fn url(&self, path: &str) -> String {
+        format!("{}{path}", self.base)
+    }
+
+    async fn key(&self, scopes: &[&str]) -> String {
+        let r = self
+            .client
+            .post(self.url("/v1/keys"))
+            .bearer_auth(&self.admin)
+            .json(&json!({"name": scopes.join("+"), "scopes": scopes}))
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), StatusCode::CREATED);
+        r.json::<Value>().await.unwrap()["token"]
+            .as_str()
+            .unwrap()
+            .to_string()
+    }
+
+    async fn keys(&self) -> Keys {
+        Keys {
+            owner: self.key(&["owner"]).await,
+            verifier: self.key(&["verifier"]).await,
+            auditor: self.key(&["auditor"]).await,
+        }
+    }
+
+    async fn upload(&self, token: &str, name: &str, bytes: Vec<u8>) -> reqwest::Response {
+        let form = Form::new().part("scene", Part::bytes(bytes).file_name(name.to_string()));
+        self.client
+            .post(self.url("/v1/assets"))
+            .bearer_auth(token)
+            .multipart(form)
+            .send()
+            .await
+            .unwrap()
+    }
+
+    async fn get(&self, token: &str, path: &str) -> reqwest::Response {
+        self.client
+            .get(self.url(path))
+            .bearer_auth(token)
+            .send()
+            .await
+            .unwrap()
+    }
+
+    async fn verify(&self, token: &str, images: &[image::RgbImage], asset: Option<&str>) -> Value {
+        let mut form = Form::new();
+        for img in images {
+            let mut png = vec![];
+            img.write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+                .unwrap();
+            form = form.part("image", Part::bytes(png).file_name("view.png"));
+        }
+        if let Some(a) = asset {
+            form = form.text("asset_id", a.to_string());
+        }
+        let r = self
+            .client
+            .post(self.url("/v1/verify"))
+            .bearer_auth(token)
+            .multipart(form)
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), StatusCode::OK);
+        r.json().await.unwrap()
+    }
+
+    /// Polls a job until it leaves the queued/running states.
+    async fn wait_job(&self, token: &str, id: &str, limit: Duration) -> Value {
+        let t0 = Instant::now();
+        loop {
+            let j: Value = self
+                .get(token, &format!("/v1/jobs/{id}"))
+                .await
+                .json()
+                .await
+                .unwrap();
+            let s = j["state"].as_str().unwrap().to_string();
+            if s != "queued" && s != "running" {
+                return j;
+            }
+            assert!(t0.elapsed() < limit, "job still {s} after {limit:?}: {j}");
+            tokio::time::sleep(Duration::from_millis(200)).await;
+        }
+    }
+
+    fn data(&self) -> PathBuf {
+        self.dir.path().join("data")
+    }
+
+    async fn stop(&mut self) {
+        if let Some(a) = self.app.take() {
+            a.stop().await.unwrap();
+        }
+    }
+}
+
+fn ply_bytes(g: &Gaussians) -> Vec<u8> {
+    let mut v = vec![];
+    write_ply(g, &mut v).unwrap();
+    v
+}
+
+async fn assert_problem(r: reqwest::Response, status: StatusCode) -> Value {
+    assert_eq!(r.status(), status);
+    assert_eq!(
+        r.headers()["content-type"].to_str().unwrap(),
+        "application/problem+json"
+    );
+    let v: Value = r.json().await.unwrap();
+    assert_eq!(v["status"], status.as_u16());
+    assert!(!v["detail"].as_str().unwrap().is_empty());
+    v
+}
+
+/// Files under the blob folder other than in-flight temporaries.
+fn stored_blobs(data: &Path) -> Vec<PathBuf> {
+    fn walk(p: &Path, out: &mut Vec<PathBuf>) {
+        if let Ok(rd) = std::fs::read_dir(p) {
+            for e in rd.flatten() {
+                let p = e.path();
+                if p.is_dir() {
+                    walk(&p, out);
+                } else {
+                    out.push(p);
+                }
+            }
+        }
+    }
+    let mut out = vec![];
+    walk(&data.join("blobs"), &mut out);
+    out
+}
+
+/// The job options of the round trips: a small orbit so CI can afford real embeddings, and
+/// the strong setting (`coupled`, carriers' learning rate ×5) with which the shipped decoder
+/// reads the message back from the training views (docs/RESULTS.md).
+fn small_job(message: &str, steps: usize) -> Value {
+    json!({
+        "bits": 32,
+        "message": message,
+        "options": {
+            "orbit": {"count": 8, "width": 128, "height": 128},
+            "holdout_every": 0,
+            "embed": {"finetune": {"steps": steps, "coupled": true, "wm_lr_scale": 5.0, "views_per_step": 4}},
+        }
+    })
+}
+
+/// The views the job trained on, as a disputer who knows them would render them.
+fn training_views(g: &Gaussians, spec: &JobSpec) -> Vec<splatmark::scene::Camera> {
+    let cams = orbit_cameras(g, &spec.orbit).unwrap();
+    split_views(&cams, spec.holdout_every).0
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn upload_watermark_download_render_verify_round_trip() {
+    let mut t = TestApp::start().await;
+    let k = t.keys().await;
+    let original = object_scene(1500, 1, 4);
+    let r = t.upload(&k.owner, "object.ply", ply_bytes(&original)).await;
+    assert_eq!(r.status(), StatusCode::CREATED);
+    let asset: Value = r.json().await.unwrap();
+    assert_eq!(asset["gaussians"], 1500);
+    assert_eq!(asset["sh_degree"], 1);
+    assert_eq!(asset["format"], "ply");
+    let id = asset["id"].as_str().unwrap().to_string();
+
+    let message = "c0ffee42";
+    let r = t
+        .client
+        .post(t.url(&format!("/v1/assets/{id}/watermark")))
+        .bearer_auth(&k.owner)
+        .header("Idempotency-Key", "round-trip-1")
+        .json(&small_job(message, 300))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::ACCEPTED);
+    let job: Value = r.json().await.unwrap();
+    let job_id = job["id"].as_str().unwrap().to_string();
+    let job = t
+        .wait_job(&k.owner, &job_id, Duration::from_secs(900))
+        .await;
+    assert_eq!(job["state"], "done", "{job}");
+    assert_eq!(job["step"], job["total"]);
+    let marked_id = job["result_asset_id"].as_str().unwrap().to_string();
+
+    // Download: a PLY with the reported count.
+    let r = t
+        .get(&k.owner, &format!("/v1/assets/{marked_id}/file"))
+        .await;
+    assert_eq!(r.status(), StatusCode::OK);
+    let bytes = r.bytes().await.unwrap();
+    let marked = read_scene_bytes(&bytes, Some("ply"), &Limits::default()).unwrap();
+    let meta: Value = t
+        .get(&k.owner, &format!("/v1/assets/{marked_id}"))
+        .await
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(meta["gaussians"].as_u64().unwrap() as usize, marked.len());
+    assert_eq!(meta["kind"], "watermarked");
+    assert_eq!(meta["parent_id"].as_str().unwrap(), id);
+
+    // Render what the job trained on and verify against the asset, then against everything.
+    let spec: JobSpec = serde_json::from_value(job["options"].clone()).unwrap();
+    let views = training_views(&original, &spec);
+    let ro = RenderOptions {
+        background: spec.embed.finetune.background,
+        ..RenderOptions::default()
+    };
+    let imgs = render_views(&marked, &views, &ro).unwrap();
+    let v = t.verify(&k.verifier, &imgs, Some(&marked_id)).await;
+    assert_eq!(v["detected"], true, "{v}");
+    assert_eq!(v["best"]["asset_id"].as_str().unwrap(), marked_id);
+    assert_eq!(v["candidates_tested"], 1);
+    let by_original = t.verify(&k.verifier, &imgs, Some(&id)).await;
+    assert_eq!(by_original["detected"], true, "{by_original}");
+    let any = t.verify(&k.verifier, &imgs, None).await;
+    assert_eq!(any["detected"], true, "{any}");
+    // The unmarked scene's renders are not detected.
+    let plain = render_views(&original, &views, &ro).unwrap();
+    let v0 = t.verify(&k.verifier, &plain, Some(&marked_id)).await;
+    assert_eq!(v0["detected"], false, "{v0}");
+
+    // Attribution: one record per Gaussian, carriers as the summary says.
+    let sum: Value = t
+        .get(
+            &k.owner,
+            &format!("/v1/assets/{marked_id}/attribution/summary"),
+        )
+        .await
+        .json()
+        .await
+        .unwrap();
+    let mut seen = 0;
+    let mut carriers = 0;
+    let mut cursor: Option<u64> = None;
+    loop {
+        let q = match cursor {
+            Some(c) => format!("/v1/assets/{marked_id}/attribution?limit=500&cursor={c}"),
+            None => format!("/v1/assets/{marked_id}/attribution?limit=500"),
+        };
+        let page: Value = t.get(&k.auditor, &q).await.json().await.unwrap();
+        for r in page["items"].as_array().unwrap() {
+            seen += 1;
+            carriers += usize::from(r["role"] == "carrier");
+        }
+        match page["next_cursor"].as_u64() {
+            Some(c) => cursor = Some(c),
+            None => break,
+        }
+    }
+    assert_eq!(seen, marked.len());
+    assert!(carriers > 0);
+    assert!(sum.to_string().contains(&carriers.to_string()), "{sum}");
+
+    // The audit log holds every step and its chain verifies.
+    let audit: Value = t
+        .get(&k.auditor, &format!("/v1/audit?asset_id={id}&limit=1000"))
+        .await
+        .json()
+        .await
+        .unwrap();
+    let actions: Vec<&str> = audit["items"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["action"].as_str().unwrap())
+        .collect();
+    for a in ["asset.upload", "job.enqueue", "watermark.publish", "verify"] {
+        assert!(actions.contains(&a), "{a} missing from {actions:?}");
+    }
+    let chain: Value = t
+        .get(&k.auditor, "/v1/audit/verify")
+        .await
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(chain["ok"], true, "{chain}");
+    t.stop().await;
+}
+
+#[tokio::test]
+async fn bad_uploads_get_4xx_problems_and_leave_nothing_behind() {
+    let mut t = TestApp::start_with(|c| c.max_upload_bytes = 200_000).await;
+    let k = t.keys().await;
+    let good = ply_bytes(&object_scene(300, 0, 1));
+    let truncated = good[..good.len() - 100].to_vec();
+    let bomb = b"ply\nformat binary_little_endian 1.0\nelement vertex 999999999999\nproperty float x\nend_header\n".to_vec();
+    let mut png = vec![];
+    image::RgbImage::new(8, 8)
+        .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+        .unwrap();
+    let big = ply_bytes(&object_scene(5000, 0, 1));
+    assert!(big.len() > 200_000);
+    for (name, bytes, status) in [
+        ("truncated.ply", truncated, StatusCode::UNPROCESSABLE_ENTITY),
+        ("bomb.ply", bomb, StatusCode::PAYLOAD_TOO_LARGE),
+        ("picture.ply", png, StatusCode::UNSUPPORTED_MEDIA_TYPE),
+        ("big.ply", big, StatusCode::PAYLOAD_TOO_LARGE),
+        ("empty.ply", vec![], StatusCode::UNPROCESSABLE_ENTITY),
+    ] {
+        let r = t.upload(&k.owner, name, bytes).await;
+        let p = assert_problem(r, status).await;
+        eprintln!("{name}: {}", p["detail"]);
+    }
+    // A form without the scene field, and one with an unknown field.
+    let r = t
+        .client
+        .post(t.url("/v1/assets"))
+        .bearer_auth(&k.owner)
+        .multipart(Form::new().text("colour", "red"))
+        .send()
+        .await
+        .unwrap();
+    assert_problem(r, StatusCode::BAD_REQUEST).await;
+    // Nothing stored: no blob, no asset row, no upload in the audit log.
+    assert!(
+        stored_blobs(&t.data())
+            .iter()
+            .all(|p| p.to_string_lossy().contains("tmp")),
+        "{:?}",
+        stored_blobs(&t.data())
+    );
+    let audit: Value = t
+        .get(&k.auditor, "/v1/audit?action=asset.upload")
+        .await
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(audit["items"].as_array().unwrap().len(), 0);
+    // …and a good upload still works.
+    let r = t.upload(&k.owner, "ok.ply", good).await;
+    assert_eq!(r.status(), StatusCode::CREATED);
+    t.stop().await;
+}
+
+#[tokio::test]
+async fn missing_or_wrong_scopes_are_401_and_403() {
+    let mut t = TestApp::start().await;
+    let k = t.keys().await;
+    let other_owner = t.key(&["owner"]).await;
+    let scene = ply_bytes(&object_scene(200, 0, 2));
+    // No key, a malformed header, an unknown key: 401.
+    let r = t.client.get(t.url("/v1/audit")).send().await.unwrap();
+    assert_problem(r, StatusCode::UNAUTHORIZED).await;
+    let r = t
+        .client
+        .get(t.url("/v1/audit"))
+        .header("authorization", "Basic abc")
+        .send()
+        .await
+        .unwrap();
+    assert_problem(r, StatusCode::UNAUTHORIZED).await;
+    let r = t.get("smk_0000", "/v1/audit").await;
+    assert_problem(r, StatusCode::UNAUTHORIZED).await;
+    // Wrong scopes: 403.
+    let r = t.upload(&k.verifier, "s.ply", scene.clone()).await;
+    assert_problem(r, StatusCode::FORBIDDEN).await;
+    let r = t.get(&k.owner, "/v1/audit").await;
+    assert_problem(r, StatusCode::FORBIDDEN).await;
+    let r = t
+        .client
+        .post(t.url("/v1/keys"))
+        .bearer_auth(&k.owner)
+        .json(&json!({"name": "x", "scopes": ["admin"]}))
+        .send()
+        .await
+        .unwrap();
+    assert_problem(r, StatusCode::FORBIDDEN).await;
+    // Another owner's asset does not exist for you.
+    let a: Value = t
+        .upload(&k.owner, "s.ply", scene)
+        .await
+        .json()
+        .await
+        .unwrap();
+    let id = a["id"].as_str().unwrap();
+    let r = t.get(&other_owner, &format!("/v1/assets/{id}")).await;
+    assert_problem(r, StatusCode::NOT_FOUND).await;
+    let r = t
+        .client
+        .post(t.url(&format!("/v1/assets/{id}/watermark")))
+        .bearer_auth(&other_owner)
+        .json(&json!({}))
+        .send()
+        .await
+        .unwrap();
+    assert_problem(r, StatusCode::NOT_FOUND).await;
+    // The auditor may read it.
+    assert_eq!(
+        t.get(&k.auditor, &format!("/v1/assets/{id}"))
+            .await
+            .status(),
+        StatusCode::OK
+    );
+    // A revoked key stops working.
+    let admin = t.admin.clone();
+    let created: Value = t
+        .client
+        .post(t.url("/v1/keys"))
+        .bearer_auth(&admin)
+        .json(&json!({"name": "temp", "scopes": ["auditor"]}))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let tok = created["token"].as_str().unwrap();
+    assert_eq!(t.get(tok, "/v1/audit").await.status(), StatusCode::OK);
+    let r = t
+        .client
+        .delete(t.url(&format!("/v1/keys/{}", created["id"].as_str().unwrap())))
+        .bearer_auth(&admin)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::NO_CONTENT);
+    assert_problem(t.get(tok, "/v1/audit").await, StatusCode::UNAUTHORIZED).await;
+    t.stop().await;
+}
+
+#[tokio::test]
+async fn idempotency_keys_replay_and_conflict_and_bad_requests_are_named() {
+    // No workers: jobs stay queued.
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = config(dir.path());
+    let mut t = TestApp::boot(dir, cfg, MasterKey::generate().to_hex(), Some(vec![])).await;
+    let k = t.keys().await;
+    let a: Value = t
+        .upload(&k.owner, "s.ply", ply_bytes(&object_scene(200, 0, 3)))
+        .await
+        .json()
+        .await
+        .unwrap();
+    let id = a["id"].as_str().unwrap();
+    let post = |body: Value, key: Option<&'static str>| {
+        let mut rq = t
+            .client
+            .post(t.url(&format!("/v1/assets/{id}/watermark")))
+            .bearer_auth(&k.owner)
+            .json(&body);
+        if let Some(key) = key {
+            rq = rq.header("Idempotency-Key", key);
+        }
+        rq.send()
+    };
+    let r1 = post(json!({"bits": 32}), Some("k1")).await.unwrap();
+    assert_eq!(r1.status(), StatusCode::ACCEPTED);
+    let j1: Value = r1.json().await.unwrap();
+    let r2 = post(json!({"bits": 32}), Some("k1")).await.unwrap();
+    assert_eq!(r2.status(), StatusCode::ACCEPTED);
+    assert_eq!(r2.headers()["idempotent-replayed"], "true");
+    let j2: Value = r2.json().await.unwrap();
+    assert_eq!(j1["id"], j2["id"], "same key, same job");
+    let r3 = post(json!({"bits": 32, "options": {"steps": 5}}), Some("k1"))
+        .await
+        .unwrap();
+    assert_problem(r3, StatusCode::CONFLICT).await;
+    let j3: Value = post(json!({"bits": 32}), None)
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_ne!(j3["id"], j1["id"], "no key, a new job");
+    // Bad requests say what is wrong.
+    for (body, status, needle) in [
+        (
+            json!({"bits": 31}),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "bits",
+        ),
+        (
+            json!({"bits": 32, "message": "zz"}),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "hex",
+        ),
+        (
+            json!({"options": {"steps": 0}}),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "steps",
+        ),
+        (
+            json!({"colour": 1}),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "colour",
+        ),
+    ] {
+        let p = assert_problem(post(body, None).await.unwrap(), status).await;
+        assert!(p["detail"].as_str().unwrap().contains(needle), "{p}");
+    }
+    // Cancel a queued job; cancelling it again is a no-op (DELETE is idempotent).
+    let jid = j3["id"].as_str().unwrap();
+    let r = t
+        .client
+        .delete(t.url(&format!("/v1/jobs/{jid}")))
+        .bearer_auth(&k.owner)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    assert_eq!(r.json::<Value>().await.unwrap()["state"], "cancelled");
+    let r = t
+        .client
+        .delete(t.url(&format!("/v1/jobs/{jid}")))
+        .bearer_auth(&k.owner)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    assert_eq!(r.json::<Value>().await.unwrap()["state"], "cancelled");
+    t.stop().await;
+}
+
+#[tokio::test]
+async fn health_metrics_and_the_served_spec_match_the_committed_one() {
+    let mut t = TestApp::start().await;
+    let r = t.client.get(t.url("/healthz")).send().await.unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    let r = t.client.get(t.url("/readyz")).send().await.unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    let m = t
+        .client
+        .get(t.url("/metrics"))
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    assert!(
+        m.contains("splatmark_http_responses_total{class=\"2xx\"}"),
+        "{m}"
+    );
+    assert!(m.contains("splatmark_workers 1"), "{m}");
+    let served: Value = t
+        .client
+        .get(t.url("/openapi.json"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let committed: Value = serde_yaml_ng::from_str(
+        &std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/api/openapi.yaml")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(served, committed);
+    let r = t.client.get(t.url("/v2/nothing")).send().await.unwrap();
+    assert_problem(r, StatusCode::NOT_FOUND).await;
+    t.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_result_is_published_once_when_a_worker_dies_mid_job() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = config(dir.path());
+    cfg.lease_seconds = 3;
+    let master = MasterKey::generate().to_hex();
+    // First life: no workers; a worker that will "die" claims the job directly.
+    let mut t = TestApp::boot(dir, cfg.clone(), master.clone(), Some(vec![])).await;
+    let k = t.keys().await;
+    let a: Value = t
+        .upload(&k.owner, "s.ply", ply_bytes(&object_scene(600, 0, 5)))
+        .await
+        .json()
+        .await
+        .unwrap();
+    let id = a["id"].as_str().unwrap().to_string();
+    let job: Value = t
+        .client
+        .post(t.url(&format!("/v1/assets/{id}/watermark")))
+        .bearer_auth(&k.owner)
+        .json(&small_job("0badc0de", 3))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let job_id = job["id"].as_str().unwrap().to_string();
+    let store = t.app.as_ref().unwrap().store.clone();
+    let dead = store
+        .claim("doomed", Duration::from_secs(3))
+        .await
+        .unwrap()
+        .expect("the queued job");
+    assert_eq!(dead.job.id.to_string(), job_id);
+    t.stop().await;
+    drop(store);
+
+    // Second life with a real worker: the expired lease is re-queued and the job completes.
+    let dir = t.dir;
+    let t = TestApp::boot(dir, cfg, master, None).await;
+    let done = t
+        .wait_job(&k.owner, &job_id, Duration::from_secs(600))
+        .await;
+    assert_eq!(done["state"], "done", "{done}");
+    assert_eq!(done["attempts"], 2);
+    // The dead worker wakes up and tries to publish: refused, nothing duplicated.
+    let store = t.app.as_ref().unwrap().store.clone();
+    let asset = store.get_asset(dead.job.asset_id).await.unwrap().unwrap();
+    let late = store
+        .publish_result(
+            dead.job.id,
+            dead.lease_token,
+            splatmark::store::NewAsset {
+                owner: dead.job.owner.clone(),
+                kind: splatmark::store::AssetKind::Watermarked,
+                parent_id: Some(asset.id),
+                source_job_id: Some(dead.job.id),
+                blob: store.blobs().put_bytes(b"not a scene").unwrap(),
+                format: "ply".into(),
+                file_name: None,
+                gaussians: 1,
+                sh_degree: 0,
+                cameras_blob: None,
+                cameras_format: None,
+            },
+            &dead.message,
+            &[],
+            json!({}),
+            splatmark::store::AuditEntry {
+                actor: "worker:doomed".into(),
+                action: "watermark.publish".into(),
+                asset_id: Some(asset.id),
+                job_id: Some(dead.job.id),
+                details: json!({}),
+            },
+        )
+        .await;
+    assert!(
+        matches!(late, Err(splatmark::store::StoreError::LeaseLost)),
+        "{late:?}"
+    );
+    let versions = store.watermarked_of(asset.id).await.unwrap();
+    assert_eq!(versions.len(), 1, "exactly one published result");
+    let audit: Value = t
+        .get(
+            &t.key(&["auditor"]).await,
+            &format!("/v1/audit?asset_id={id}&action=watermark.publish"),
+        )
+        .await
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(audit["items"].as_array().unwrap().len(), 1);
+}
