@@ -41,7 +41,7 @@ pub async fn plan_workers(cfg: &Config) -> Vec<WorkerSpec> {
 async fn gpu_adapters() -> Vec<(String, Device)> {
     let instance =
         wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
-    let adapters = instance.enumerate_adapters(wgpu::Backends::all()).await;
+    let adapters = instance.enumerate_adapters(wgpu::Backends::PRIMARY).await;
     let (mut discrete, mut integrated) = (0, 0);
     let mut out = vec![];
     for a in adapters {

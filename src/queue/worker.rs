@@ -252,7 +252,8 @@ async fn run_job(ctx: &Ctx, w: &WorkerSpec, c: Claimed) {
         (r, tmp)
     });
 
-    let mut beat = tokio::time::interval(lease / 3);
+    // Progress is written every 2 s (cheap in SQLite); the lease is extended at least thrice per lease.
+    let mut beat = tokio::time::interval((lease / 3).min(Duration::from_secs(2)));
     beat.tick().await;
     let mut shutdown = ctx.shutdown.clone();
     let mut lost = false;
