@@ -832,3 +832,41 @@ async fn a_real_scene_round_trips_through_the_service() {
     assert_eq!(v0["detected"], false, "{v0}");
     t.stop().await;
 }
+
+#[tokio::test]
+async fn cameras_uploaded_with_a_scene_are_validated_too() {
+    let mut t = TestApp::start().await;
+    let k = t.keys().await;
+    let scene = ply_bytes(&object_scene(200, 0, 6));
+    // One INRIA cameras.json entry looking at the origin from z = -4.
+    let cams = json!([{
+        "id": 0, "img_name": "c0", "width": 96, "height": 96,
+        "position": [0.0, 0.0, -4.0],
+        "rotation": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+        "fx": 100.0, "fy": 100.0
+    }]);
+    let post = |cams: Vec<u8>| {
+        let form = Form::new()
+            .part("scene", Part::bytes(scene.clone()).file_name("s.ply"))
+            .part("cameras", Part::bytes(cams).file_name("cameras.json"));
+        t.client
+            .post(t.url("/v1/assets"))
+            .bearer_auth(&k.owner)
+            .multipart(form)
+            .send()
+    };
+    let r = post(b"{\"frames\": 7}".to_vec()).await.unwrap();
+    let p = assert_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
+    assert!(p["detail"].as_str().unwrap().contains("cameras"), "{p}");
+    assert!(
+        stored_blobs(&t.data())
+            .iter()
+            .all(|p| p.to_string_lossy().contains("tmp"))
+    );
+    let r = post(serde_json::to_vec(&cams).unwrap()).await.unwrap();
+    assert_eq!(r.status(), StatusCode::CREATED);
+    let a: Value = r.json().await.unwrap();
+    assert_eq!(a["cameras_format"], "inria");
+    assert_eq!(a["cameras_sha256"].as_str().unwrap().len(), 64);
+    t.stop().await;
+}
