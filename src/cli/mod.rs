@@ -8,7 +8,7 @@ use crate::decoder::train::{
 };
 use crate::render::{RenderOptions, render, to_rgb8};
 use crate::scene::bounds::{full_bounds, robust_bounds};
-use crate::scene::camera::read_cameras;
+use crate::scene::camera::{read_cameras, resize_all};
 use crate::scene::format::read_scene_bytes_detect;
 use crate::scene::orbit::{OrbitOptions, UpAxis, orbit_cameras};
 use crate::scene::{Camera, Gaussians, Limits, write_ply};
@@ -304,22 +304,7 @@ impl ViewArgs {
             Some(path) => {
                 let cams = read_cameras(path)
                     .with_context(|| format!("cannot load cameras {}", path.display()))?;
-                match (self.width, self.height) {
-                    (None, None) => cams,
-                    (w, h) => cams
-                        .into_iter()
-                        .map(|c| {
-                            let w = w.unwrap_or_else(|| {
-                                let h = h.unwrap_or(c.height);
-                                (c.width as f64 * h as f64 / c.height as f64).round() as u32
-                            });
-                            let h = h.unwrap_or_else(|| {
-                                (c.height as f64 * w as f64 / c.width as f64).round() as u32
-                            });
-                            c.resized(w.max(1), h.max(1))
-                        })
-                        .collect(),
-                }
+                resize_all(cams, self.width, self.height)
             }
             None => {
                 let mut o = OrbitOptions {

@@ -90,22 +90,15 @@ pub async fn metrics(State(st): State<AppState>) -> ApiResult<Response> {
         "Verifications that detected a watermark.",
         &one(m.detections.load(Ordering::Relaxed)),
     );
-    let jobs: Vec<(String, f64)> = [
-        JobState::Queued,
-        JobState::Running,
-        JobState::Done,
-        JobState::Failed,
-        JobState::Dead,
-        JobState::Cancelled,
-    ]
-    .into_iter()
-    .map(|s| {
-        (
-            format!("{{state=\"{}\"}}", s.as_str()),
-            counts.jobs.get(s) as f64,
-        )
-    })
-    .collect();
+    let jobs: Vec<(String, f64)> = JobState::ALL
+        .into_iter()
+        .map(|s| {
+            (
+                format!("{{state=\"{}\"}}", s.as_str()),
+                counts.jobs.get(s) as f64,
+            )
+        })
+        .collect();
     put("splatmark_jobs", "gauge", "Jobs by state.", &jobs);
     put(
         "splatmark_assets",

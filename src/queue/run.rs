@@ -9,7 +9,7 @@ use super::spec::JobSpec;
 use crate::decoder::WatermarkModel;
 use crate::embed::attribution::AttributionRecord;
 use crate::embed::pipeline::{EmbedError, Progress, embed, split_views};
-use crate::scene::camera::read_cameras;
+use crate::scene::camera::{read_cameras, resize_all};
 use crate::scene::orbit::orbit_cameras;
 use crate::scene::{Camera, Limits, SceneError, read_scene_bytes, write_ply};
 
@@ -49,22 +49,7 @@ pub fn job_cameras(
     match cameras.filter(|_| spec.use_cameras) {
         Some(p) => {
             let cams = read_cameras(p).map_err(JobError::Cameras)?;
-            Ok(match (spec.width, spec.height) {
-                (None, None) => cams,
-                (w, h) => cams
-                    .into_iter()
-                    .map(|c| {
-                        let w = w.unwrap_or_else(|| {
-                            let h = h.unwrap_or(c.height);
-                            (f64::from(c.width) * f64::from(h) / f64::from(c.height)).round() as u32
-                        });
-                        let h = h.unwrap_or_else(|| {
-                            (f64::from(c.height) * f64::from(w) / f64::from(c.width)).round() as u32
-                        });
-                        c.resized(w.max(1), h.max(1))
-                    })
-                    .collect(),
-            })
+            Ok(resize_all(cams, spec.width, spec.height))
         }
         None => orbit_cameras(g, &spec.orbit).map_err(|e| JobError::Views(e.to_string())),
     }

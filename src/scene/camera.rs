@@ -165,6 +165,26 @@ impl Camera {
 /// few megabytes; the cap keeps a mistaken or hostile path from being read into memory.
 pub const MAX_CAMERA_FILE_BYTES: u64 = 256 << 20;
 
+/// Resizes `cams` to `width` × `height`; a missing side follows each camera's aspect ratio,
+/// `(None, None)` keeps them as they are.
+pub fn resize_all(cams: Vec<Camera>, width: Option<u32>, height: Option<u32>) -> Vec<Camera> {
+    if width.is_none() && height.is_none() {
+        return cams;
+    }
+    cams.into_iter()
+        .map(|c| {
+            let w = width.unwrap_or_else(|| {
+                let h = height.unwrap_or(c.height);
+                (f64::from(c.width) * f64::from(h) / f64::from(c.height)).round() as u32
+            });
+            let h = height.unwrap_or_else(|| {
+                (f64::from(c.height) * f64::from(w) / f64::from(c.width)).round() as u32
+            });
+            c.resized(w.max(1), h.max(1))
+        })
+        .collect()
+}
+
 /// Reads whichever camera file `path` is, deciding by content (and name):
 ///
 /// - NPY data (`\x93NUMPY` magic, usually `poses_bounds.npy`): LLFF poses, see
