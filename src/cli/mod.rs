@@ -84,6 +84,31 @@ enum DecoderCommand {
     Train(Box<TrainArgs>),
     /// Evaluate trained weights on the held-out images under the real attacks; JSON on stdout.
     Eval(EvalArgs),
+    /// Re-decide the logit map (whitening / centering) of trained weights and re-run the
+    /// held-out evaluation; writes the weights with the new sidecar to --out (JSON on stdout).
+    Calibrate(CalibrateArgs),
+}
+
+#[derive(Args, Debug)]
+struct CalibrateArgs {
+    /// Image folder (the training split fits the map, the held-out split checks it).
+    #[arg(long)]
+    images: PathBuf,
+    /// Trained decoder weights (.bpk with its .json sidecar and .encoder.bpk next to it).
+    #[arg(long)]
+    weights: PathBuf,
+    /// Where to write the calibrated artifact (may be --weights itself).
+    #[arg(long)]
+    out: PathBuf,
+    /// Which map: auto (keep what passes the rule), always (whitening), center, never.
+    #[arg(long, value_enum, default_value = "auto")]
+    whitening: WhiteningArg,
+    /// Held-out evaluation: short side of the images.
+    #[arg(long, default_value_t = EvalOptions::default().size)]
+    eval_size: u32,
+    /// Held-out evaluation: messages per image.
+    #[arg(long, default_value_t = EvalOptions::default().repeats)]
+    eval_repeats: usize,
 }
 
 #[derive(Args, Debug)]
@@ -98,8 +123,12 @@ struct TrainArgs {
     #[arg(long)]
     out: PathBuf,
     /// Continue from the newest checkpoint in <OUT>.ckpt/ (its settings; --steps may extend).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "init")]
     resume: bool,
+    /// Fine-tune: start from these trained weights (architecture and strength from their
+    /// sidecar, fresh optimiser) instead of random ones.
+    #[arg(long)]
+    init: Option<PathBuf>,
     /// JSON file with a TrainConfig to start from (flags override it).
     #[arg(long)]
     config: Option<PathBuf>,
@@ -133,6 +162,15 @@ struct TrainArgs {
     /// Groups per batch, each with its own attack draw.
     #[arg(long)]
     attack_groups: Option<usize>,
+    /// Probability that a group is attacked after the ramp (below 1 keeps clean groups).
+    #[arg(long)]
+    attack_prob_max: Option<f64>,
+    /// Unmarked crops per step whose logits are pulled towards 0 (unbiased bits); 0 = off.
+    #[arg(long)]
+    unmarked_crops: Option<usize>,
+    /// Weight of the unmarked loss.
+    #[arg(long)]
+    unmarked_weight: Option<f64>,
     /// Smallest random downscale of a crop's source window.
     #[arg(long)]
     min_scale: Option<f32>,
@@ -220,7 +258,19 @@ impl From<EncoderArg> for EncoderKind {
 enum WhiteningArg {
     Auto,
     Always,
+    Center,
     Never,
+}
+
+impl From<WhiteningArg> for WhiteningChoice {
+    fn from(w: WhiteningArg) -> Self {
+        match w {
+            WhiteningArg::Auto => WhiteningChoice::Auto,
+            WhiteningArg::Always => WhiteningChoice::Always,
+            WhiteningArg::Center => WhiteningChoice::Center,
+            WhiteningArg::Never => WhiteningChoice::Never,
+        }
+    }
 }
 
 #[derive(Args, Debug)]
@@ -373,6 +423,9 @@ fn run(cli: Cli) -> Result<()> {
         Command::Decoder {
             command: DecoderCommand::Eval(args),
         } => eval_cmd(&args),
+        Command::Decoder {
+            command: DecoderCommand::Calibrate(args),
+        } => calibrate_cmd(&args),
         Command::Decode(args) => decode_cmd(&args),
         Command::Embed(args) => embed::embed_cmd(&args),
         Command::Verify(args) => embed::verify_cmd(&args),
@@ -411,6 +464,9 @@ fn train_cmd(a: &TrainArgs) -> Result<()> {
             strength,
             warmup_steps,
             ramp_steps,
+            attack_prob_max,
+            unmarked_crops,
+            unmarked_weight,
             attack_groups,
             min_scale,
             seed,
@@ -427,11 +483,7 @@ fn train_cmd(a: &TrainArgs) -> Result<()> {
             encoder_levels
         );
         if let Some(w) = a.whitening {
-            c.whitening = match w {
-                WhiteningArg::Auto => WhiteningChoice::Auto,
-                WhiteningArg::Always => WhiteningChoice::Always,
-                WhiteningArg::Never => WhiteningChoice::Never,
-            };
+            c.whitening = w.into();
         }
         if a.no_final_eval {
             c.final_eval = false;
@@ -443,16 +495,42 @@ fn train_cmd(a: &TrainArgs) -> Result<()> {
             c.eval.repeats = r;
         }
     };
-    let command = std::env::args()
-        .map(|s| if s.contains(' ') { format!("'{s}'") } else { s })
-        .collect::<Vec<_>>()
-        .join(" ");
     let options = RunOptions {
         resume: a.resume,
         overrides: &overrides,
-        command: Some(command),
+        command: Some(command_line()),
+        init: a.init.as_deref(),
     };
     let sidecar = train::run(base, &a.images, &a.out, options, &mut std::io::stderr())?;
+    if let Some(eval) = sidecar.record.as_ref().and_then(|r| r.held_out.as_ref()) {
+        println!("{}", serde_json::to_string_pretty(eval)?);
+    }
+    Ok(())
+}
+
+/// The command line as typed (arguments with spaces quoted), for records.
+fn command_line() -> String {
+    std::env::args()
+        .map(|s| if s.contains(' ') { format!("'{s}'") } else { s })
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
+fn calibrate_cmd(a: &CalibrateArgs) -> Result<()> {
+    let opts = EvalOptions {
+        size: a.eval_size,
+        repeats: a.eval_repeats,
+        ..EvalOptions::default()
+    };
+    let sidecar = train::calibrate(
+        &a.weights,
+        &a.images,
+        &a.out,
+        a.whitening.into(),
+        &opts,
+        Some(command_line()),
+        &mut std::io::stderr(),
+    )?;
     if let Some(eval) = sidecar.record.as_ref().and_then(|r| r.held_out.as_ref()) {
         println!("{}", serde_json::to_string_pretty(eval)?);
     }

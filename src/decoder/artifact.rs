@@ -146,8 +146,11 @@ pub fn encoder_residual(
 /// Whether the whitening helped, as measured at the end of training.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct WhiteningReport {
-    /// Whether it was kept.
+    /// Whether a map was kept.
     pub applied: bool,
+    /// Which one: `"whitening"` (μ and ZCA) or `"centering"` (μ only); absent when none.
+    #[serde(default)]
+    pub kind: Option<String>,
     /// Unmarked held-out crops decoded.
     pub unmarked_samples: usize,
     /// Mean over bits of |2·P(bit = 1) − 1| on unmarked crops, raw logits.
@@ -160,25 +163,52 @@ pub struct WhiteningReport {
     pub marked_accuracy_raw: f64,
     /// Their bit accuracy, whitened logits.
     pub marked_accuracy_whitened: f64,
+    /// Unmarked bit bias with centred logits (absent in records older than centering).
+    #[serde(default)]
+    pub bias_centered: Option<f64>,
+    /// Marked bit accuracy with centred logits.
+    #[serde(default)]
+    pub marked_accuracy_centered: Option<f64>,
 }
 
 impl WhiteningReport {
-    /// The rule of [`super::train::WhiteningChoice::Auto`]: lower bias, and at most 0.5
-    /// percentage points of marked accuracy lost.
+    /// The rule of [`super::train::WhiteningChoice::Auto`] for a candidate with unmarked bias
+    /// `bias` and marked accuracy `accuracy`: lower bias, and at most 0.5 percentage points of
+    /// marked accuracy lost.
+    fn passes(&self, bias: f64, accuracy: f64) -> bool {
+        bias < self.bias_raw && accuracy >= self.marked_accuracy_raw - 0.005
+    }
+
+    /// Whether the full whitening passes the rule.
     pub fn helps(&self) -> bool {
-        self.bias_whitened < self.bias_raw
-            && self.marked_accuracy_whitened >= self.marked_accuracy_raw - 0.005
+        self.passes(self.bias_whitened, self.marked_accuracy_whitened)
+    }
+
+    /// Whether the centering passes the rule.
+    pub fn centering_helps(&self) -> bool {
+        match (self.bias_centered, self.marked_accuracy_centered) {
+            (Some(b), Some(a)) => self.passes(b, a),
+            _ => false,
+        }
     }
 
     /// One-line summary.
     pub fn summary(&self) -> String {
-        format!(
-            "unmarked bit bias {:.3} → {:.3}, marked bit accuracy {:.4} → {:.4}",
-            self.bias_raw,
-            self.bias_whitened,
-            self.marked_accuracy_raw,
-            self.marked_accuracy_whitened
-        )
+        let mut s = format!(
+            "unmarked bit bias raw {:.3}, whitened {:.3}",
+            self.bias_raw, self.bias_whitened
+        );
+        if let Some(b) = self.bias_centered {
+            s += &format!(", centred {b:.3}");
+        }
+        s += &format!(
+            "; marked bit accuracy raw {:.4}, whitened {:.4}",
+            self.marked_accuracy_raw, self.marked_accuracy_whitened
+        );
+        if let Some(a) = self.marked_accuracy_centered {
+            s += &format!(", centred {a:.4}");
+        }
+        s
     }
 }
 
@@ -201,6 +231,12 @@ pub struct TrainingRecord {
     pub command: Option<String>,
     /// The training data.
     pub data: Option<String>,
+    /// The artifact this run was initialised from (fine-tuning), with its own record.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub started_from: Option<super::train::StartedFrom>,
+    /// The `decoder calibrate` command that last re-decided the logit map and re-evaluated.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibrated_by: Option<String>,
 }
 
 /// The JSON sidecar of an artifact.
@@ -604,20 +640,15 @@ mod tests {
     use super::*;
 
     #[test]
-    fn shipped_weights_are_typed_errors_until_trained() {
+    fn every_shipped_length_loads_and_others_are_typed_errors() {
         let d = Device::flex();
         for bits in SHIPPED_BITS {
-            match WatermarkModel::shipped(bits, &d) {
-                Ok(m) => {
-                    assert_eq!(m.bits(), bits);
-                    assert!(is_shipped(bits));
-                }
-                Err(WeightsError::NotShipped { bits: b }) => {
-                    assert_eq!(b, bits);
-                    assert!(!is_shipped(bits));
-                }
-                Err(e) => panic!("{bits}: {e}"),
-            }
+            let m = WatermarkModel::shipped(bits, &d).unwrap_or_else(|e| panic!("{bits}: {e}"));
+            assert_eq!(m.bits(), bits);
+            assert!(is_shipped(bits));
+            assert!(m.encoder.is_some(), "{bits}: no encoder shipped");
+            let record = m.sidecar.record.as_ref().expect("training record");
+            assert!(record.held_out.is_some(), "{bits}: no held-out figures");
         }
         assert!(matches!(
             WatermarkModel::shipped(40, &d),

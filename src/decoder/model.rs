@@ -363,10 +363,9 @@ impl Whitening {
         self.mean.len()
     }
 
-    /// Fits μ and W to decoder outputs on natural images (one vector of L logits per image),
-    /// in f64 with a Jacobi eigen-decomposition of the covariance (divided by n, as Stable
-    /// Signature does).
-    pub fn fit(logits: &[Vec<f32>]) -> Result<Self, WhiteningError> {
+    /// Checks samples for [`fit`](Self::fit) and [`centering`](Self::centering) and returns
+    /// their mean (f64).
+    fn sample_mean(logits: &[Vec<f32>]) -> Result<Vec<f64>, WhiteningError> {
         let n = logits.len();
         if n < 2 {
             return Err(WhiteningError::TooFewSamples(n));
@@ -393,6 +392,35 @@ impl Whitening {
         for m in &mut mean {
             *m /= n as f64;
         }
+        Ok(mean)
+    }
+
+    /// Centering only: μ fitted as in [`fit`](Self::fit), W = identity. It removes the bias of
+    /// each bit on natural images (bit i = `z_i > μ_i`) without mixing or rescaling the logits,
+    /// so it costs watermarked images far less accuracy than the full whitening when μ is small
+    /// next to their logits.
+    pub fn centering(logits: &[Vec<f32>]) -> Result<Self, WhiteningError> {
+        let mean = Self::sample_mean(logits)?;
+        let mut w = Self::identity(mean.len());
+        w.mean = mean.into_iter().map(|m| m as f32).collect();
+        Ok(w)
+    }
+
+    /// Whether W is the identity (a [`centering`](Self::centering)).
+    pub fn is_centering(&self) -> bool {
+        let l = self.bits();
+        self.matrix
+            .iter()
+            .enumerate()
+            .all(|(k, &v)| v == if k / l == k % l { 1.0 } else { 0.0 })
+    }
+
+    /// Fits μ and W to decoder outputs on natural images (one vector of L logits per image),
+    /// in f64 with a Jacobi eigen-decomposition of the covariance (divided by n, as Stable
+    /// Signature does).
+    pub fn fit(logits: &[Vec<f32>]) -> Result<Self, WhiteningError> {
+        let mean = Self::sample_mean(logits)?;
+        let (n, l) = (logits.len(), mean.len());
         let mut cov = vec![0.0f64; l * l];
         for row in logits {
             for i in 0..l {
@@ -754,6 +782,41 @@ mod tests {
         assert_eq!(
             Whitening::identity(4).apply_row(&[1.0, -2.0, 3.0, 0.5]),
             vec![1.0, -2.0, 3.0, 0.5]
+        );
+    }
+
+    #[test]
+    fn centering_removes_the_mean_and_nothing_else() {
+        // Bit 0 biased to 1 (+2), bit 1 biased to 0 (−1), bit 2 fair; correlated noise.
+        let mut rng = Lcg(3);
+        let samples: Vec<Vec<f32>> = (0..4000)
+            .map(|_| {
+                let g = rng.normal();
+                vec![
+                    (2.0 + g) as f32,
+                    (-1.0 + 0.5 * g) as f32,
+                    rng.normal() as f32,
+                ]
+            })
+            .collect();
+        let c = Whitening::centering(&samples).unwrap();
+        assert!(c.is_centering());
+        assert!(!Whitening::fit(&samples).unwrap().is_centering());
+        assert!((c.mean[0] - 2.0).abs() < 0.06 && (c.mean[1] + 1.0).abs() < 0.03);
+        let z = [5.0, 7.0, -3.0];
+        let out = c.apply_row(&z);
+        for i in 0..3 {
+            assert!((out[i] - (z[i] - c.mean[i])).abs() < 1e-6);
+        }
+        // The share of ones per bit becomes about one half.
+        for i in 0..2 {
+            let ones = samples.iter().filter(|s| c.apply_row(s)[i] > 0.0).count() as f64
+                / samples.len() as f64;
+            assert!((ones - 0.5).abs() < 0.05, "bit {i}: {ones}");
+        }
+        assert_eq!(
+            Whitening::centering(&[vec![1.0]]),
+            Err(WhiteningError::TooFewSamples(1))
         );
     }
 }

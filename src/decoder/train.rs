@@ -94,15 +94,18 @@ impl DeviceChoice {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum WhiteningChoice {
-    /// Fit it, and keep it only if it helps: it must lower the bit bias of unmarked held-out
-    /// crops (mean over bits of |2·P(bit = 1) − 1|; a biased bit makes the binomial
-    /// false-positive statistics optimistic) **and** cost at most 0.5 percentage points of bit
-    /// accuracy on watermarked held-out crops (with the trained encoder, clean and attacked).
+    /// Fit the whitening and the centering (μ only), and keep one only if it helps: it must
+    /// lower the bit bias of unmarked held-out crops (mean over bits of |2·P(bit = 1) − 1|; a
+    /// biased bit makes the binomial false-positive statistics optimistic) **and** cost at most
+    /// 0.5 percentage points of bit accuracy on watermarked held-out crops (with the trained
+    /// encoder, clean and attacked); of two that pass, the one with the lower bias.
     #[default]
     Auto,
-    /// Always apply it.
+    /// Always apply the whitening.
     Always,
-    /// Never apply it.
+    /// Always apply the centering.
+    Center,
+    /// Never apply either.
     Never,
 }
 
@@ -145,8 +148,17 @@ pub struct TrainConfig {
     pub warmup_steps: usize,
     /// Steps over which the probability of attacking a group ramps from 0 to 1 after the warm-up.
     pub ramp_steps: usize,
+    /// Probability that a group is attacked once the ramp is complete (1 = always; below 1 a
+    /// share of the groups stays clean, which the decoder then also learns to read).
+    pub attack_prob_max: f64,
     /// Groups the batch is split into, each with its own attack draw.
     pub attack_groups: usize,
+    /// Unmarked crops per step whose logits are pulled towards 0 (BCE against ½: "no
+    /// watermark decodes to coin tosses"), which keeps the decoder's bits unbiased on natural
+    /// images; 0 = off (the HiDDeN recipe).
+    pub unmarked_crops: usize,
+    /// Weight of that unmarked loss.
+    pub unmarked_weight: f64,
     /// Smallest random downscale of a crop's source window (1 = no downscale).
     pub min_scale: f32,
     /// Seed of every random draw (weights, data, messages, attacks).
@@ -198,7 +210,10 @@ impl Default for TrainConfig {
             eot: EotConfig::default(),
             warmup_steps: 1500,
             ramp_steps: 3000,
+            attack_prob_max: 1.0,
             attack_groups: 2,
+            unmarked_crops: 0,
+            unmarked_weight: 1.0,
             min_scale: 0.4,
             seed: 0,
             checkpoint_every: 250,
@@ -253,6 +268,12 @@ impl TrainConfig {
         if !(self.strength > 0.0 && self.strength <= 1.0) {
             return bad("strength must be in (0, 1]");
         }
+        if !(self.unmarked_weight >= 0.0 && self.unmarked_weight.is_finite()) {
+            return bad("unmarked_weight must be ≥ 0");
+        }
+        if !(self.attack_prob_max >= 0.0 && self.attack_prob_max <= 1.0) {
+            return bad("attack_prob_max must be in [0, 1]");
+        }
         if !(self.min_scale > 0.0 && self.min_scale <= 1.0) {
             return bad("min_scale must be in (0, 1]");
         }
@@ -299,8 +320,9 @@ impl TrainConfig {
         }
     }
 
-    /// Probability that a group of step `step` (0-based) is attacked.
-    pub fn attack_probability(&self, step: usize) -> f64 {
+    /// The ramp of step `step` (0-based): 0 during the warm-up, then linear to 1 over
+    /// `ramp_steps`. It scales the image loss.
+    pub fn ramp(&self, step: usize) -> f64 {
         if step < self.warmup_steps {
             0.0
         } else if self.ramp_steps == 0 {
@@ -308,6 +330,12 @@ impl TrainConfig {
         } else {
             ((step - self.warmup_steps + 1) as f64 / self.ramp_steps as f64).min(1.0)
         }
+    }
+
+    /// Probability that a group of step `step` (0-based) is attacked: the ramp ×
+    /// `attack_prob_max`.
+    pub fn attack_probability(&self, step: usize) -> f64 {
+        self.ramp(step) * self.attack_prob_max
     }
 
     /// Learning rate of step `step` (cosine decay).
@@ -439,6 +467,9 @@ pub struct CheckpointState {
     pub wall_s: f64,
     /// Progress lines so far.
     pub history: Vec<LogEntry>,
+    /// The artifact the run started from (`--init`).
+    #[serde(default)]
+    pub started_from: Option<StartedFrom>,
 }
 
 /// A training run in memory.
@@ -461,6 +492,18 @@ pub struct Trainer {
     pub command: Option<String>,
     /// The training data, for the training record.
     pub data: Option<String>,
+    /// The artifact this run started from (`--init`), for the training record.
+    pub started_from: Option<StartedFrom>,
+}
+
+/// The trained artifact a run was initialised from (`--init`): its path and training record, so
+/// a fine-tuned model's sidecar keeps its whole history.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StartedFrom {
+    /// The decoder weights given to `--init`.
+    pub path: String,
+    /// Their training record.
+    pub record: Option<Box<super::artifact::TrainingRecord>>,
 }
 
 fn optimizer() -> ModuleOptimizer {
@@ -558,7 +601,70 @@ impl Trainer {
             window_start: Instant::now(),
             command: None,
             data: None,
+            started_from: None,
         }
+    }
+
+    /// A run that starts from the trained artifact at `path` (decoder, encoder and sidecar; fresh
+    /// Adam state, step 0): fine-tuning. The architecture and the embedding strength come from
+    /// the artifact's training configuration; everything else from `config`.
+    pub fn from_artifact(
+        mut config: TrainConfig,
+        train: ImageSet,
+        path: &Path,
+    ) -> Result<Self, TrainError> {
+        let read = |p: &Path| std::fs::read(p).map_err(io_err(p));
+        let sidecar_path = artifact::sidecar_path(path);
+        let sidecar: Sidecar =
+            serde_json::from_slice(&read(&sidecar_path)?).map_err(|source| TrainError::Json {
+                path: sidecar_path.clone(),
+                source,
+            })?;
+        let base = sidecar.train_config.as_ref().ok_or_else(|| {
+            TrainError::Config(format!(
+                "{}: the sidecar has no training configuration to continue from",
+                sidecar_path.display()
+            ))
+        })?;
+        if base.bits != config.bits {
+            return Err(TrainError::Config(format!(
+                "{} decodes {} bits, not {}",
+                path.display(),
+                base.bits,
+                config.bits
+            )));
+        }
+        config.strength = base.strength;
+        config.decoder_channels = base.decoder_channels;
+        config.decoder_depth = base.decoder_depth;
+        config.encoder = base.encoder;
+        config.encoder_tile = base.encoder_tile;
+        config.encoder_channels = base.encoder_channels;
+        config.encoder_blocks = base.encoder_blocks;
+        config.encoder_levels = base.encoder_levels;
+        config.validate()?;
+        train.check_crop(config.crop)?;
+        let plain = config.device.device();
+        plain.seed(config.seed);
+        let device = plain.autodiff();
+        let decoder = load_module_bytes(config.decoder_config().init(&device), read(path)?, path)?;
+        let enc_path = artifact::encoder_path(path);
+        let encoder = load_module_bytes(config.init_encoder(&device), read(&enc_path)?, &enc_path)?;
+        let mut t = Self::assemble(
+            config,
+            device,
+            WatermarkNet { encoder, decoder },
+            optimizer(),
+            0,
+            train,
+            0.0,
+            Vec::new(),
+        );
+        t.started_from = Some(StartedFrom {
+            path: path.display().to_string(),
+            record: sidecar.record.map(Box::new),
+        });
+        Ok(t)
     }
 
     /// Continues from the checkpoint folder `dir` (one `step-NNNNNNNN`). `adjust` may change
@@ -597,7 +703,7 @@ impl Trainer {
         let optim = optimizer()
             .from_bytes(Bytes::from_bytes_vec(bytes))
             .map_err(|e| record_err(&optim_path, e))?;
-        Ok(Self::assemble(
+        let mut t = Self::assemble(
             config,
             device,
             net,
@@ -606,7 +712,9 @@ impl Trainer {
             train,
             state.wall_s,
             state.history,
-        ))
+        );
+        t.started_from = state.started_from;
+        Ok(t)
     }
 
     /// Whether all steps are done.
@@ -643,6 +751,15 @@ impl Trainer {
         let marked = straight_through_round(marked.mul_scalar(255.0)).div_scalar(255.0);
         let mse = marked.clone().sub(cover).square().mean();
 
+        // Unmarked crops (drawn only when enabled, so runs without them keep their random
+        // streams).
+        let mut unmarked = (c.unmarked_crops > 0 && c.unmarked_weight > 0.0).then(|| {
+            let u = c.unmarked_crops;
+            let px = self.train.sample_batch(&mut rng, u, s, c.min_scale, true);
+            let x = Tensor::<4>::from_data(TensorData::new(px, [u, 3, s, s]), &self.device);
+            straight_through_round(x.mul_scalar(255.0)).div_scalar(255.0)
+        });
+        let mut unmarked_logits = None;
         let p = c.attack_probability(k);
         let groups = c.attack_groups.clamp(1, b);
         let mut logits = Vec::with_capacity(groups);
@@ -656,11 +773,31 @@ impl Trainer {
             } else {
                 DiffAttack::Chain(Vec::new())
             };
-            logits.push(self.net.decoder.forward(attack.apply(part)?));
+            // The unmarked crops join the first group: same attack, same forward pass (and
+            // BatchNorm batch), so they are treated like the watermarked images they must be
+            // told apart from.
+            if g == 0
+                && let Some(u) = unmarked.take()
+            {
+                let z = self
+                    .net
+                    .decoder
+                    .forward(attack.apply(Tensor::cat(vec![part, u], 0))?);
+                unmarked_logits = Some(z.clone().narrow(0, len, c.unmarked_crops));
+                logits.push(z.narrow(0, 0, len));
+            } else {
+                logits.push(self.net.decoder.forward(attack.apply(part)?));
+            }
         }
         let logits = Tensor::cat(logits, 0);
         let bce = bce_with_logits(logits.clone(), message);
-        let loss = bce.clone().add(mse.clone().mul_scalar(c.image_weight * p));
+        let mut loss = bce
+            .clone()
+            .add(mse.clone().mul_scalar(c.image_weight * c.ramp(k)));
+        if let Some(z) = unmarked_logits {
+            let half = z.zeros_like().add_scalar(0.5);
+            loss = loss.add(bce_with_logits(z, half).mul_scalar(c.unmarked_weight));
+        }
 
         let grads = GradientsParams::from_grads(loss.backward(), &self.net);
         let lr = c.lr_at(k);
@@ -773,6 +910,7 @@ impl Trainer {
             ),
             wall_s: self.wall_s(),
             history: self.history.clone(),
+            started_from: self.started_from.clone(),
         };
         let state_path = tmp.path().join("state.json");
         let json = serde_json::to_vec_pretty(&state).expect("state serialises");
@@ -794,27 +932,6 @@ impl Trainer {
             let _ = std::fs::remove_dir_all(old);
         }
         Ok(final_dir)
-    }
-
-    /// Logits (plain device, inference BatchNorm) of `n` clean training crops of the training
-    /// size, in batches, from a stream independent of the training steps.
-    fn clean_logits(&self, decoder: &HiddenDecoder, device: &Device, n: usize) -> Vec<Vec<f32>> {
-        let c = &self.config;
-        let mut rng = EotRng::new(step_seed(c.seed ^ 0x5748_4954_454e, usize::MAX));
-        let mut out = Vec::with_capacity(n);
-        while out.len() < n {
-            let b = (n - out.len()).min(32);
-            let px = self
-                .train
-                .sample_batch(&mut rng, b, c.crop, c.min_scale, true);
-            let x = Tensor::<4>::from_data(TensorData::new(px, [b, 3, c.crop, c.crop]), device);
-            let z = decoder
-                .forward(x)
-                .try_into_vec_as::<f32>()
-                .unwrap_or_default();
-            out.extend(z.chunks_exact(c.bits).map(<[f32]>::to_vec));
-        }
-        out
     }
 
     /// The trained model as used after training: frozen decoder and encoder on the plain
@@ -849,41 +966,9 @@ impl Trainer {
         let c = &self.config;
         let mut model = self.model();
         let device = c.device.device();
-        let report = match (c.whitening, held_out) {
-            (WhiteningChoice::Never, _) => None,
-            (choice, held) => {
-                let samples = self.clean_logits(&model.decoder, &device, c.whitening_samples);
-                match Whitening::fit(&samples) {
-                    Ok(w) => {
-                        let report = match held {
-                            Some(h) => Some(eval::whitening_check(&model, &w, h, c, &device)?),
-                            None => None,
-                        };
-                        let keep = match choice {
-                            WhiteningChoice::Always => true,
-                            _ => report.as_ref().is_some_and(WhiteningReport::helps),
-                        };
-                        let _ = writeln!(
-                            log,
-                            "whitening: {} ({})",
-                            if keep { "applied" } else { "not applied" },
-                            report
-                                .as_ref()
-                                .map(WhiteningReport::summary)
-                                .unwrap_or_else(|| "no held-out images to check".into())
-                        );
-                        if keep {
-                            model.sidecar.whitening = Some(w);
-                        }
-                        report.map(|r| WhiteningReport { applied: keep, ..r })
-                    }
-                    Err(e) => {
-                        let _ = writeln!(log, "whitening: not fitted ({e})");
-                        None
-                    }
-                }
-            }
-        };
+        let (whitening, report) =
+            decide_whitening(&model, &self.train, held_out, c, c.whitening, &device, log)?;
+        model.sidecar.whitening = whitening;
         let evaluation = match (c.final_eval, held_out) {
             (true, Some(h)) => {
                 let _ = writeln!(log, "evaluating on {} held-out images…", h.len());
@@ -901,10 +986,163 @@ impl Trainer {
             held_out: evaluation,
             command: self.command.clone(),
             data: self.data.clone(),
+            started_from: self.started_from.clone(),
+            calibrated_by: None,
         });
         model.save(out)?;
         Ok(model.sidecar)
     }
+}
+
+/// Logits (plain device, inference BatchNorm) of `n` clean crops of `images` at the training
+/// size, in batches, from a random stream independent of the training steps.
+fn clean_logits(
+    decoder: &HiddenDecoder,
+    images: &ImageSet,
+    c: &TrainConfig,
+    device: &Device,
+    n: usize,
+) -> Vec<Vec<f32>> {
+    let mut rng = EotRng::new(step_seed(c.seed ^ 0x5748_4954_454e, usize::MAX));
+    let mut out = Vec::with_capacity(n);
+    while out.len() < n {
+        let b = (n - out.len()).min(32);
+        let px = images.sample_batch(&mut rng, b, c.crop, c.min_scale, true);
+        let x = Tensor::<4>::from_data(TensorData::new(px, [b, 3, c.crop, c.crop]), device);
+        let z = decoder
+            .forward(x)
+            .try_into_vec_as::<f32>()
+            .unwrap_or_default();
+        out.extend(z.chunks_exact(c.bits).map(<[f32]>::to_vec));
+    }
+    out
+}
+
+/// Decides the map applied to the logits of `model`'s decoder (its sidecar's whitening is
+/// ignored: the raw logits are used): a [`Whitening`] and a centering are fitted on clean crops
+/// of `train` and, with held-out images, both are measured by [`eval::whitening_check`]. `Auto`
+/// keeps, of those that pass the rule ([`WhiteningReport::helps`]), the one with the lower
+/// unmarked bias (centering on a tie); `Always` keeps the whitening, `Center` the centering,
+/// `Never` nothing. The choice and the numbers go to `log`.
+pub fn decide_whitening(
+    model: &WatermarkModel,
+    train: &ImageSet,
+    held_out: Option<&ImageSet>,
+    c: &TrainConfig,
+    choice: WhiteningChoice,
+    device: &Device,
+    log: &mut dyn Write,
+) -> Result<(Option<Whitening>, Option<WhiteningReport>), TrainError> {
+    if choice == WhiteningChoice::Never {
+        return Ok((None, None));
+    }
+    let samples = clean_logits(&model.decoder, train, c, device, c.whitening_samples);
+    let (white, center) = match (Whitening::fit(&samples), Whitening::centering(&samples)) {
+        (Ok(w), Ok(m)) => (w, m),
+        (Err(e), _) | (_, Err(e)) => {
+            let _ = writeln!(log, "whitening: not fitted ({e})");
+            return Ok((None, None));
+        }
+    };
+    let report = match held_out {
+        Some(h) => Some(eval::whitening_check(
+            model,
+            &white,
+            Some(&center),
+            h,
+            c,
+            device,
+        )?),
+        None => None,
+    };
+    let kept = match choice {
+        WhiteningChoice::Never => None,
+        WhiteningChoice::Always => Some(("whitening", white)),
+        WhiteningChoice::Center => Some(("centering", center)),
+        WhiteningChoice::Auto => report.as_ref().and_then(|r| {
+            let w = r.helps().then_some(r.bias_whitened);
+            let m = r.centering_helps().then_some(r.bias_centered).flatten();
+            match (w, m) {
+                (Some(bw), Some(bm)) if bw < bm => Some(("whitening", white)),
+                (_, Some(_)) => Some(("centering", center)),
+                (Some(_), None) => Some(("whitening", white)),
+                (None, None) => None,
+            }
+        }),
+    };
+    let _ = writeln!(
+        log,
+        "logit map: {} ({})",
+        kept.as_ref().map_or("none", |(k, _)| k),
+        report
+            .as_ref()
+            .map(WhiteningReport::summary)
+            .unwrap_or_else(|| "no held-out images to check".into())
+    );
+    let report = report.map(|r| WhiteningReport {
+        applied: kept.is_some(),
+        kind: kept.as_ref().map(|(k, _)| (*k).to_string()),
+        ..r
+    });
+    Ok((kept.map(|(_, w)| w), report))
+}
+
+/// Re-decides the logit map ([`decide_whitening`] with `choice`) of the trained artifact at
+/// `weights`, on the training and held-out splits of `images` as in training, re-runs the
+/// held-out evaluation with `eval`, and writes the artifact (same weights, new sidecar) to `out`
+/// (which may be `weights`). `command` is recorded as `record.calibrated_by`.
+pub fn calibrate(
+    weights: &Path,
+    images: &Path,
+    out: &Path,
+    choice: WhiteningChoice,
+    eval: &EvalOptions,
+    command: Option<String>,
+    log: &mut dyn Write,
+) -> Result<Sidecar, TrainError> {
+    let mut model = WatermarkModel::load(weights, &Device::flex())?;
+    let config = model.sidecar.train_config.clone().ok_or_else(|| {
+        TrainError::Config(format!(
+            "{}: the sidecar has no training configuration (crop size, seed) to calibrate with",
+            artifact::sidecar_path(weights).display()
+        ))
+    })?;
+    if model.encoder.is_none() {
+        return Err(artifact::WeightsError::NoEncoder(weights.to_path_buf()).into());
+    }
+    let train = ImageSet::load(images, Split::Train)?;
+    let held_out = ImageSet::load(images, Split::HeldOut)?;
+    let device = Device::flex();
+    model.sidecar.whitening = None;
+    let (whitening, report) = decide_whitening(
+        &model,
+        &train,
+        Some(&held_out),
+        &config,
+        choice,
+        &device,
+        log,
+    )?;
+    model.sidecar.whitening = whitening;
+    let _ = writeln!(log, "evaluating on {} held-out images…", held_out.len());
+    let evaluation = eval::evaluate_on(&model, &held_out.images, eval, &device)?;
+    let record = model.sidecar.record.get_or_insert(TrainingRecord {
+        steps: 0,
+        wall_s: 0.0,
+        images_per_s: None,
+        final_log: None,
+        whitening: None,
+        held_out: None,
+        command: None,
+        data: None,
+        started_from: None,
+        calibrated_by: None,
+    });
+    record.whitening = report;
+    record.held_out = Some(evaluation);
+    record.calibrated_by = command;
+    model.save(out)?;
+    Ok(model.sidecar)
 }
 
 /// PSNR (dB, peak 1) of a mean squared error.
@@ -936,6 +1174,9 @@ pub struct RunOptions<'a> {
     pub overrides: &'a dyn Fn(&mut TrainConfig),
     /// The command line, for the training record.
     pub command: Option<String>,
+    /// Start a fresh run from this trained artifact instead of random weights (see
+    /// [`Trainer::from_artifact`]); not with `resume`.
+    pub init: Option<&'a Path>,
 }
 
 /// Runs a whole training job: loads the split under `images`, starts fresh or resumes from the
@@ -956,6 +1197,11 @@ pub fn run(
         Err(e) => return Err(e.into()),
     };
     let n_train = train.len();
+    if options.resume && options.init.is_some() {
+        return Err(TrainError::Config(
+            "--init starts a new run; it cannot be combined with --resume".into(),
+        ));
+    }
     let mut trainer = if options.resume {
         let (_, latest) = list_checkpoints(&root)
             .pop()
@@ -998,7 +1244,19 @@ pub fn run(
     } else {
         let mut config = config;
         (options.overrides)(&mut config);
-        Trainer::new(config, train)?
+        match options.init {
+            Some(path) => {
+                let t = Trainer::from_artifact(config, train, path)?;
+                let _ = writeln!(
+                    log,
+                    "starting from {} (its architecture and strength {}; fresh Adam state)",
+                    path.display(),
+                    t.config.strength
+                );
+                t
+            }
+            None => Trainer::new(config, train)?,
+        }
     };
     trainer.command = options.command;
     trainer.data = Some(format!(
@@ -1128,6 +1386,22 @@ pub(crate) mod tests {
         assert!((c.attack_probability(10) - 0.05).abs() < 1e-12);
         assert_eq!(c.attack_probability(29), 1.0);
         assert_eq!(c.attack_probability(1000), 1.0);
+        // A ceiling on the attack probability leaves the ramp (and the image loss) alone.
+        let capped = TrainConfig {
+            attack_prob_max: 0.25,
+            ..c.clone()
+        };
+        assert_eq!(capped.attack_probability(1000), 0.25);
+        assert_eq!(capped.ramp(1000), 1.0);
+        assert_eq!(capped.ramp(9), 0.0);
+        assert!(
+            TrainConfig {
+                attack_prob_max: 1.5,
+                ..c.clone()
+            }
+            .validate()
+            .is_err()
+        );
         assert!((c.lr_at(0) - c.lr).abs() < 1e-15);
         assert!((c.lr_at(100) - c.lr * c.lr_min_fraction).abs() < 1e-12);
         assert!(c.lr_at(50) < c.lr && c.lr_at(50) > c.lr * c.lr_min_fraction);
@@ -1254,5 +1528,223 @@ pub(crate) mod tests {
         .unwrap();
         assert_eq!(longer.config.steps, 10);
         assert_eq!(longer.config.lr, config.lr);
+    }
+
+    /// Trains `config` for its steps on `set` and writes the artifact (with its encoder) to
+    /// `out`, without the held-out evaluation.
+    fn tiny_artifact(config: TrainConfig, set: ImageSet, out: &Path) -> Trainer {
+        let mut t = Trainer::new(config, set).unwrap();
+        while !t.done() {
+            t.step().unwrap();
+        }
+        t.finish(out, None, &mut Vec::new()).unwrap();
+        t
+    }
+
+    #[test]
+    fn init_starts_a_fine_tune_from_a_trained_artifact() {
+        let set = synthetic_set(4, 48, 3);
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("base.bpk");
+        let base = TrainConfig {
+            steps: 3,
+            whitening: WhiteningChoice::Never,
+            ..tiny_config()
+        };
+        let trained = tiny_artifact(base.clone(), set.clone(), &out);
+        let probe = Tensor::<4>::from_data(
+            TensorData::new(
+                set.sample_batch(&mut EotRng::new(5), 2, 32, 1.0, false),
+                [2, 3, 32, 32],
+            ),
+            &Device::flex(),
+        );
+        let outputs = |t: &Trainer| {
+            t.model()
+                .decoder
+                .forward(probe.clone())
+                .try_into_vec_as::<f32>()
+                .unwrap()
+        };
+
+        // Another architecture and strength asked for: the artifact's win; the rest is ours.
+        let wanted = TrainConfig {
+            decoder_channels: 16,
+            encoder_tile: 4,
+            strength: 0.9,
+            lr: 5e-4,
+            steps: 2,
+            ..base.clone()
+        };
+        let mut ft = Trainer::from_artifact(wanted, set.clone(), &out).unwrap();
+        assert_eq!(ft.step, 0);
+        assert_eq!(ft.config.decoder_channels, base.decoder_channels);
+        assert_eq!(ft.config.encoder_tile, base.encoder_tile);
+        assert_eq!(ft.config.strength, base.strength);
+        assert_eq!(ft.config.lr, 5e-4);
+        assert_eq!(outputs(&ft), outputs(&trained));
+        let from = ft.started_from.clone().unwrap();
+        assert_eq!(from.path, out.display().to_string());
+        assert_eq!(from.record.as_ref().unwrap().steps, 3);
+        while !ft.done() {
+            ft.step().unwrap();
+        }
+        assert_ne!(outputs(&ft), outputs(&trained));
+        // The lineage survives a checkpoint round trip and lands in the new artifact.
+        let ckpt = ft.save_checkpoint(&dir.path().join("ft.ckpt")).unwrap();
+        let resumed = Trainer::resume(&ckpt, set.clone(), |c| c.clone()).unwrap();
+        assert_eq!(resumed.started_from, ft.started_from);
+        let out2 = dir.path().join("ft.bpk");
+        let sidecar = ft.finish(&out2, None, &mut Vec::new()).unwrap();
+        assert_eq!(
+            sidecar
+                .record
+                .unwrap()
+                .started_from
+                .unwrap()
+                .record
+                .unwrap()
+                .steps,
+            3
+        );
+
+        // Bad starts are typed errors.
+        let wrong_bits = TrainConfig {
+            bits: 8,
+            ..base.clone()
+        };
+        assert!(matches!(
+            Trainer::from_artifact(wrong_bits, set.clone(), &out),
+            Err(TrainError::Config(_))
+        ));
+        assert!(matches!(
+            Trainer::from_artifact(base, set, &dir.path().join("missing.bpk")),
+            Err(TrainError::Io { .. })
+        ));
+    }
+
+    #[test]
+    fn the_unmarked_loss_adds_a_coin_toss_term() {
+        // Two runs from one checkpoint, one with the unmarked loss: its loss carries
+        // weight · BCE(z, ½) ≥ weight · ln 2 on top of (about) the same watermark loss.
+        let set = synthetic_set(4, 48, 4);
+        let dir = tempfile::tempdir().unwrap();
+        let t = Trainer::new(tiny_config(), set.clone()).unwrap();
+        let start = t.save_checkpoint(&dir.path().join("c")).unwrap();
+        let mut plain = Trainer::resume(&start, set.clone(), |c| c.clone()).unwrap();
+        let mut with = Trainer::resume(&start, set.clone(), |c| c.clone()).unwrap();
+        with.config.unmarked_crops = 3;
+        with.config.unmarked_weight = 10.0;
+        let (a, b) = (plain.step().unwrap(), with.step().unwrap());
+        assert!(
+            b.loss - b.bce >= 10.0 * std::f64::consts::LN_2 - 1e-3,
+            "{a:?} vs {b:?}"
+        );
+        assert!(a.loss - a.bce < 1e-6, "no image loss in the warm-up: {a:?}");
+        // Training with it drives the unmarked logits towards 0 (coin tosses).
+        let mean_abs = |t: &Trainer| {
+            let m = t.model();
+            let px = set.sample_batch(&mut EotRng::new(8), 8, 32, 1.0, false);
+            let x = Tensor::<4>::from_data(TensorData::new(px, [8, 3, 32, 32]), &Device::flex());
+            let z = m.decoder.forward(x).try_into_vec_as::<f32>().unwrap();
+            z.iter().map(|v| v.abs()).sum::<f32>() / z.len() as f32
+        };
+        for _ in 0..30 {
+            plain.step().unwrap();
+            with.step().unwrap();
+        }
+        let (za, zb) = (mean_abs(&plain), mean_abs(&with));
+        assert!(
+            zb < za,
+            "unmarked |logit| {zb} with the loss vs {za} without"
+        );
+    }
+
+    #[test]
+    fn calibrate_redecides_the_logit_map_and_records_it() {
+        // An image folder on disk with a held-out image.
+        let dir = tempfile::tempdir().unwrap();
+        let images = dir.path().join("images");
+        std::fs::create_dir_all(&images).unwrap();
+        let set = synthetic_set(12, 48, 6);
+        let mut held = 0;
+        for (i, img) in set.images.iter().enumerate() {
+            let name = format!("img{i:02}.png");
+            held += usize::from(super::super::data::is_held_out(&name));
+            img.to_rgb8().save(images.join(&name)).unwrap();
+        }
+        assert!(held > 0 && held < 12, "{held} held out");
+        let out = dir.path().join("d.bpk");
+        let config = TrainConfig {
+            steps: 2,
+            whitening: WhiteningChoice::Never,
+            ..tiny_config()
+        };
+        tiny_artifact(config, set, &out);
+        let opts = EvalOptions {
+            size: 32,
+            repeats: 1,
+            unmarked_messages: 3,
+            ..EvalOptions::default()
+        };
+        let calibrated = dir.path().join("c.bpk");
+        let sidecar = calibrate(
+            &out,
+            &images,
+            &calibrated,
+            WhiteningChoice::Center,
+            &opts,
+            Some("splatmark decoder calibrate …".into()),
+            &mut Vec::new(),
+        )
+        .unwrap();
+        let w = sidecar.whitening.clone().unwrap();
+        assert!(w.is_centering());
+        let record = sidecar.record.unwrap();
+        assert_eq!(
+            record.calibrated_by.as_deref(),
+            Some("splatmark decoder calibrate …")
+        );
+        assert_eq!(record.steps, 2);
+        let report = record.whitening.unwrap();
+        assert_eq!(report.kind.as_deref(), Some("centering"));
+        assert!(report.bias_centered.is_some());
+        assert_eq!(record.held_out.unwrap().images, held);
+        let model = WatermarkModel::load(&calibrated, &Device::flex()).unwrap();
+        assert_eq!(model.sidecar.whitening, Some(w));
+        // The same weights: raw logits unchanged.
+        let original = WatermarkModel::load(&out, &Device::flex()).unwrap();
+        let x = Tensor::<4>::from_data(
+            TensorData::new(vec![0.5f32; 3 * 32 * 32], [1, 3, 32, 32]),
+            &Device::flex(),
+        );
+        assert_eq!(model.raw_logits(x.clone()), original.raw_logits(x));
+        // Never: no map.
+        let none = calibrate(
+            &out,
+            &images,
+            &calibrated,
+            WhiteningChoice::Never,
+            &opts,
+            None,
+            &mut Vec::new(),
+        )
+        .unwrap();
+        assert!(none.whitening.is_none());
+        // Without a trained model there: a typed error, nothing written.
+        let missing = dir.path().join("none.bpk");
+        assert!(
+            calibrate(
+                &missing,
+                &images,
+                &dir.path().join("x.bpk"),
+                WhiteningChoice::Auto,
+                &opts,
+                None,
+                &mut Vec::new()
+            )
+            .is_err()
+        );
+        assert!(!dir.path().join("x.bpk").exists());
     }
 }
