@@ -69,6 +69,7 @@ impl App {
             metrics: Arc::new(Metrics::default()),
         };
         let app = router(state);
+        let rx_gc = rx.clone();
         let mut rx_server = rx;
         let server = tokio::spawn(async move {
             axum::serve(listener, app)
@@ -77,6 +78,7 @@ impl App {
                 })
                 .await
         });
+        tokio::spawn(collect_garbage_periodically(store.clone(), rx_gc));
         tracing::info!(%addr, "splatmark listening");
         Ok(App {
             addr,
@@ -93,13 +95,40 @@ impl App {
         let _ = self.shutdown.send(true);
     }
 
-    /// Stops and waits: in-flight requests finish; a running job is cancelled and re-queued when
-    /// its lease expires.
+    /// Stops and waits: in-flight requests finish; a running job is cancelled and released back
+    /// to the queue (its attempt not counted).
     pub async fn stop(self) -> Result<()> {
         self.shutdown();
         self.server.await??;
         self.pool.join().await;
         Ok(())
+    }
+}
+
+/// Blobs no asset references are removed once they are this old (a failed publish or upload
+/// leaves its blob behind; the age keeps blobs whose asset row is being written).
+pub const BLOB_GC_MIN_AGE: std::time::Duration = std::time::Duration::from_secs(24 * 3600);
+
+/// How often the service collects unreferenced blobs (first run at start).
+pub const BLOB_GC_EVERY: std::time::Duration = std::time::Duration::from_secs(3600);
+
+async fn collect_garbage_periodically(store: Store, mut shutdown: watch::Receiver<bool>) {
+    loop {
+        match store.collect_garbage(BLOB_GC_MIN_AGE).await {
+            Ok(r) if r.removed > 0 => {
+                tracing::info!(
+                    removed = r.removed,
+                    bytes = r.bytes,
+                    "removed unreferenced blobs"
+                )
+            }
+            Ok(_) => {}
+            Err(e) => tracing::warn!(error = %e, "blob garbage collection failed"),
+        }
+        tokio::select! {
+            _ = tokio::time::sleep(BLOB_GC_EVERY) => {}
+            _ = shutdown.wait_for(|&s| s) => return,
+        }
     }
 }
 

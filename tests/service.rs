@@ -738,6 +738,114 @@ async fn a_result_is_published_once_when_a_worker_dies_mid_job() {
     assert_eq!(audit["items"].as_array().unwrap().len(), 1);
 }
 
+#[tokio::test]
+async fn a_job_running_at_shutdown_goes_back_to_the_queue_at_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut cfg = config(dir.path());
+    cfg.lease_seconds = 600; // far beyond the test: only the release can re-queue it
+    let master = MasterKey::generate().to_hex();
+    let mut t = TestApp::boot(dir, cfg.clone(), master.clone(), None).await;
+    let k = t.keys().await;
+    let a: Value = t
+        .upload(&k.owner, "s.ply", ply_bytes(&object_scene(600, 0, 5)))
+        .await
+        .json()
+        .await
+        .unwrap();
+    let id = a["id"].as_str().unwrap().to_string();
+    let job: Value = t
+        .client
+        .post(t.url(&format!("/v1/assets/{id}/watermark")))
+        .bearer_auth(&k.owner)
+        .json(&small_job("0badc0de", 100_000))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let job_id = job["id"].as_str().unwrap().to_string();
+    // Wait until the worker is inside the finetuning loop.
+    let t0 = Instant::now();
+    loop {
+        let j: Value = t
+            .get(&k.owner, &format!("/v1/jobs/{job_id}"))
+            .await
+            .json()
+            .await
+            .unwrap();
+        if j["state"] == "running"
+            && j["phase"] == "finetune"
+            && j["step"].as_u64().unwrap_or(0) > 0
+        {
+            assert_eq!(j["attempts"], 1, "{j}");
+            break;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(300), "never ran: {j}");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    let store = t.app.as_ref().unwrap().store.clone();
+    let stopped = Instant::now();
+    t.stop().await;
+    assert!(
+        stopped.elapsed() < Duration::from_secs(60),
+        "shutdown waited"
+    );
+    let j = store
+        .get_job(job_id.parse().unwrap())
+        .await
+        .unwrap()
+        .unwrap();
+    assert_eq!(j.state, splatmark::store::JobState::Queued, "{j:?}");
+    assert_eq!(j.attempts, 0, "a shutdown is not a failed attempt");
+    let (released, _) = store
+        .audit_query(&splatmark::store::AuditFilter {
+            asset_id: Some(j.asset_id),
+            action: Some("job.release".into()),
+            ..Default::default()
+        })
+        .await
+        .unwrap();
+    assert_eq!(released.len(), 1);
+    assert_eq!(released[0].job_id, Some(j.id));
+    drop(store);
+
+    // The next start picks it up at once (attempt 1 again).
+    let mut t = TestApp::boot(t.dir, cfg, master, None).await;
+    let t0 = Instant::now();
+    loop {
+        let j: Value = t
+            .get(&k.owner, &format!("/v1/jobs/{job_id}"))
+            .await
+            .json()
+            .await
+            .unwrap();
+        if j["state"] == "running" {
+            assert_eq!(j["attempts"], 1, "{j}");
+            break;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(60), "not picked up: {j}");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    let r = t
+        .client
+        .delete(t.url(&format!("/v1/jobs/{job_id}")))
+        .bearer_auth(&k.owner)
+        .send()
+        .await
+        .unwrap();
+    assert!(r.status().is_success(), "{}", r.status());
+    // Stopping cancels the running embedding (a test runtime that just ended would wait for it).
+    let store = t.app.as_ref().unwrap().store.clone();
+    t.stop().await;
+    let j = store
+        .get_job(job_id.parse().unwrap())
+        .await
+        .unwrap()
+        .unwrap();
+    assert_eq!(j.state, splatmark::store::JobState::Cancelled);
+}
+
 /// The shared data folder, when present (CI has it).
 fn shared_scene(rel: &str) -> Option<PathBuf> {
     let p = Path::new(env!("CARGO_MANIFEST_DIR"))

@@ -257,6 +257,7 @@ async fn run_job(ctx: &Ctx, w: &WorkerSpec, c: Claimed) {
     beat.tick().await;
     let mut shutdown = ctx.shutdown.clone();
     let mut lost = false;
+    let mut stopping = false;
     let (result, tmp) = loop {
         tokio::select! {
             r = &mut blocking => match r {
@@ -278,8 +279,9 @@ async fn run_job(ctx: &Ctx, w: &WorkerSpec, c: Claimed) {
                     Err(e) => tracing::error!(error = %e, "heartbeat failed"),
                 }
             },
-            _ = shutdown.changed() => {
-                tracing::warn!("shutting down: the job stops and is re-queued when its lease expires");
+            _ = shutdown.changed(), if !stopping => {
+                tracing::warn!("shutting down: the job stops and goes back to the queue");
+                stopping = true;
                 cancel.store(true, Ordering::Relaxed);
             }
         }
@@ -287,7 +289,17 @@ async fn run_job(ctx: &Ctx, w: &WorkerSpec, c: Claimed) {
     let out = match result {
         Ok(out) if !lost => out,
         Ok(_) | Err(JobError::Embed(EmbedError::Cancelled)) => {
-            tracing::info!("job stopped before publishing");
+            if stopping && !lost {
+                // Back to the queue now (not at lease expiry), the attempt not counted.
+                match ctx.store.release(job.id, token, "worker shutdown").await {
+                    Ok(()) => tracing::info!("job released to the queue"),
+                    Err(e) => {
+                        tracing::warn!(error = %e, "releasing the job failed; it is re-queued when its lease expires")
+                    }
+                }
+            } else {
+                tracing::info!("job stopped before publishing");
+            }
             return;
         }
         Err(e) => return fail(ctx, job.id, token, &e.to_string()).await,

@@ -85,7 +85,65 @@ pub struct Asset {
     pub created_at: String,
 }
 
+/// What [`Store::collect_garbage`] did.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize)]
+pub struct GcReport {
+    /// Blobs on disk.
+    pub scanned: u64,
+    /// Unreferenced blobs old enough, removed.
+    pub removed: u64,
+    /// Their bytes.
+    pub bytes: u64,
+}
+
 impl Store {
+    /// Removes blobs that no asset references (scene or cameras) and that are older than
+    /// `min_age` — left by a publish or an upload that failed after its blob was committed.
+    /// Committing touches a blob, so the age rule protects blobs whose asset row is about to be
+    /// written. One audit row "blob.gc" when anything was removed.
+    pub async fn collect_garbage(&self, min_age: std::time::Duration) -> Result<GcReport> {
+        let referenced: std::collections::HashSet<String> = sqlx::query_scalar(
+            "SELECT sha256 FROM assets UNION SELECT cameras_sha256 FROM assets \
+             WHERE cameras_sha256 IS NOT NULL",
+        )
+        .fetch_all(&self.pool)
+        .await?
+        .into_iter()
+        .collect();
+        let blobs = self.blobs().clone();
+        let (report, removed) = tokio::task::spawn_blocking(move || -> Result<_> {
+            let mut report = GcReport::default();
+            let mut removed = Vec::new();
+            for (id, path, size, age) in blobs.list()? {
+                report.scanned += 1;
+                if referenced.contains(&id) || age < min_age {
+                    continue;
+                }
+                match std::fs::remove_file(&path) {
+                    Ok(()) => {
+                        report.removed += 1;
+                        report.bytes += size;
+                        removed.push(id);
+                    }
+                    Err(e) => tracing::warn!(blob = %id, error = %e, "could not remove a blob"),
+                }
+            }
+            Ok((report, removed))
+        })
+        .await
+        .map_err(|e| StoreError::Io(std::io::Error::other(e)))??;
+        if report.removed > 0 {
+            let mut entry = AuditEntry::new("system", "blob.gc");
+            entry.details = serde_json::json!({
+                "removed": report.removed,
+                "bytes": report.bytes,
+                "blobs": removed,
+            });
+            self.append_audit(entry).await?;
+        }
+        Ok(report)
+    }
+
     /// Inserts an asset and its audit row (`asset_id` filled in when `None`) in one transaction.
     /// `Invalid` for bad fields, a missing blob or a blob of another size; nothing is written then.
     pub async fn insert_asset(&self, a: NewAsset, mut audit_entry: AuditEntry) -> Result<Asset> {

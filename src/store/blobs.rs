@@ -56,8 +56,14 @@ impl BlobStore {
         tmp.as_file_mut().flush()?;
         let (sha256, size) = hash_file(tmp.as_file_mut())?;
         let dest = self.location(&sha256);
-        // An existing file of another size is a truncated leftover: replaced below.
+        // An existing file of another size is a truncated leftover: replaced below. An existing
+        // complete one is touched, so the garbage collector's age rule sees it as new until the
+        // row that references it is written.
         if fs::metadata(&dest).is_ok_and(|m| m.len() == size) {
+            File::options()
+                .write(true)
+                .open(&dest)?
+                .set_modified(std::time::SystemTime::now())?;
             return Ok(BlobRef { sha256, size });
         }
         tmp.as_file().sync_all()?;
@@ -101,6 +107,32 @@ impl BlobStore {
     /// Size of a stored blob (`NotFound` when missing).
     pub(crate) fn size_of(&self, sha256: &str) -> Result<u64> {
         Ok(fs::metadata(self.path(sha256)?)?.len())
+    }
+
+    /// Every committed blob: `(id, path, size, age)` (files that are not blobs are skipped).
+    pub(crate) fn list(&self) -> io::Result<Vec<(String, PathBuf, u64, std::time::Duration)>> {
+        let mut out = Vec::new();
+        for dir in fs::read_dir(&self.root)?.flatten() {
+            let head = dir.file_name().to_string_lossy().into_owned();
+            if head.len() != 2 || !dir.file_type().is_ok_and(|t| t.is_dir()) {
+                continue;
+            }
+            for f in fs::read_dir(dir.path())?.flatten() {
+                let id = format!("{head}{}", f.file_name().to_string_lossy());
+                let Ok(meta) = f.metadata() else { continue };
+                if !is_blob_id(&id) || !meta.is_file() {
+                    continue;
+                }
+                let age = meta
+                    .modified()
+                    .ok()
+                    .and_then(|t| t.elapsed().ok())
+                    .unwrap_or_default();
+                out.push((id, f.path(), meta.len(), age));
+            }
+        }
+        out.sort();
+        Ok(out)
     }
 
     /// Where a (validated) id lives: `root/ab/cdef…`.

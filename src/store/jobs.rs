@@ -482,6 +482,45 @@ impl Store {
         Ok(rows.len() as u64)
     }
 
+    /// Hands a running job back because its worker is shutting down (not because the job
+    /// failed): `queued` again at once, the attempt not counted (the next claim is the same attempt
+    /// number), lease cleared, audit "job.release" with `reason`. `LeaseLost` when `token` no
+    /// longer holds the job (nothing written).
+    pub async fn release(&self, job: Uuid, token: Uuid, reason: &str) -> Result<()> {
+        let reason = truncate(reason, MAX_ERROR);
+        let mut tx = self.begin_immediate().await?;
+        let id = job.to_string();
+        let r = sqlx::query(
+            "SELECT asset_id, attempts, worker FROM jobs \
+             WHERE id = ? AND state = 'running' AND lease_token = ?",
+        )
+        .bind(&id)
+        .bind(token.to_string())
+        .fetch_optional(&mut *tx)
+        .await?
+        .ok_or(StoreError::LeaseLost)?;
+        let attempts: i64 = r.try_get("attempts")?;
+        let worker: Option<String> = r.try_get("worker")?;
+        let now = time::now();
+        sqlx::query(
+            "UPDATE jobs SET state = 'queued', attempts = MAX(attempts - 1, 0), \
+             lease_token = NULL, lease_expires_at = NULL, not_before = ?, updated_at = ? \
+             WHERE id = ?",
+        )
+        .bind(&now)
+        .bind(&now)
+        .bind(&id)
+        .execute(&mut *tx)
+        .await?;
+        let mut entry = AuditEntry::new(worker.unwrap_or_else(|| "system".into()), "job.release");
+        entry.job_id = Some(job);
+        entry.asset_id = Some(parse_uuid(&r.try_get::<String, _>("asset_id")?)?);
+        entry.details = serde_json::json!({ "attempt": attempts, "reason": reason });
+        audit::append_in(&mut tx, &entry).await?;
+        tx.commit().await?;
+        Ok(())
+    }
+
     /// Records a failed attempt. With attempts left: `failed`, claimable again after
     /// `5 s · 2^(attempts−1)` (at most 10 min), audit "job.fail"; otherwise `dead`, audit
     /// "job.dead". The error text (at most 4 KiB kept) stays on the job. `LeaseLost` when `token`

@@ -34,7 +34,7 @@ mod verifications;
 mod tests;
 
 pub use api_keys::{ApiKey, Scope, TOKEN_PREFIX};
-pub use assets::{Asset, AssetKind, NewAsset};
+pub use assets::{Asset, AssetKind, GcReport, NewAsset};
 pub use attribution::{AttributionSummary, MAX_ATTRIBUTION_PAGE};
 pub use audit::{AuditEntry, AuditFilter, AuditRow, ChainReport, GENESIS_HASH, MAX_AUDIT_PAGE};
 pub use blobs::{BlobRef, BlobStore};

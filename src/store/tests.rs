@@ -242,6 +242,69 @@ async fn blob_commit_is_content_addressed_and_idempotent() {
     assert_ne!(other.sha256, a.sha256);
 }
 
+/// Sets a blob's modification time `age` in the past.
+fn age_blob(store: &Store, id: &str, age: Duration) {
+    std::fs::File::options()
+        .write(true)
+        .open(store.blobs().path(id).expect("blob"))
+        .expect("open")
+        .set_modified(std::time::SystemTime::now() - age)
+        .expect("set mtime");
+}
+
+#[tokio::test]
+async fn garbage_collection_removes_old_unreferenced_blobs_only() {
+    let (dir, store) = setup().await;
+    let day = Duration::from_secs(24 * 3600);
+    let kept = original(&store).await;
+    let cams = store.blobs().put_bytes(b"cameras").expect("blob");
+    let mut with_cams = new_original(&store, b"scene with cameras");
+    with_cams.cameras_blob = Some(cams.clone());
+    with_cams.cameras_format = Some("inria".into());
+    store
+        .insert_asset(with_cams, entry("asset.upload"))
+        .await
+        .expect("insert");
+    let orphan = store.blobs().put_bytes(b"a failed publish").expect("blob");
+    let young = store.blobs().put_bytes(b"being published").expect("blob");
+    for id in [&kept.sha256, &cams.sha256, &orphan.sha256, &young.sha256] {
+        age_blob(&store, id, 2 * day);
+    }
+    // Committing bytes that are already there makes the blob young again.
+    assert_eq!(
+        store.blobs().put_bytes(b"being published").expect("blob"),
+        young
+    );
+
+    let r = store.collect_garbage(day).await.expect("gc");
+    assert_eq!(
+        r,
+        GcReport {
+            scanned: 5,
+            removed: 1,
+            bytes: orphan.size
+        }
+    );
+    assert!(matches!(
+        store.blobs().path(&orphan.sha256),
+        Err(StoreError::NotFound)
+    ));
+    for id in [&kept.sha256, &cams.sha256, &young.sha256] {
+        store.blobs().path(id).expect("kept");
+    }
+    assert_eq!(
+        scalar(&dir, "SELECT COUNT(*) FROM audit WHERE action = 'blob.gc'").await,
+        1
+    );
+    // Nothing left to do: no second audit row.
+    assert_eq!(store.collect_garbage(day).await.expect("gc").removed, 0);
+    assert_eq!(
+        scalar(&dir, "SELECT COUNT(*) FROM audit WHERE action = 'blob.gc'").await,
+        1
+    );
+    assert!(store.verify_audit_chain().await.expect("chain").ok);
+}
+
 #[tokio::test]
 async fn bad_blob_ids_are_rejected() {
     let (_dir, store) = setup().await;
@@ -734,6 +797,57 @@ async fn expired_lease_is_requeued_then_claimable_and_the_old_token_is_dead() {
         .await,
         1
     );
+}
+
+#[tokio::test]
+async fn a_released_job_is_queued_at_once_without_spending_an_attempt() {
+    let (dir, store) = setup().await;
+    let a = original(&store).await;
+    let job = enqueue(&store, a.id, 1).await;
+    let first = store.claim("w1", LONG).await.expect("claim").expect("job");
+    assert_eq!(first.job.attempts, 1);
+    // Another token cannot release it.
+    assert!(matches!(
+        store.release(job.id, Uuid::new_v4(), "shutdown").await,
+        Err(StoreError::LeaseLost)
+    ));
+    store
+        .release(job.id, first.lease_token, "worker shutdown")
+        .await
+        .expect("release");
+    let j = store.get_job(job.id).await.expect("get").expect("job");
+    assert_eq!(j.state, JobState::Queued);
+    assert_eq!(j.attempts, 0);
+    // The old holder is out; releasing twice is refused.
+    assert!(matches!(
+        store.heartbeat(job.id, first.lease_token, LONG, None).await,
+        Err(StoreError::LeaseLost)
+    ));
+    assert!(matches!(
+        store.release(job.id, first.lease_token, "again").await,
+        Err(StoreError::LeaseLost)
+    ));
+    // Claimable right away, and with max_attempts = 1 it still has its one attempt.
+    let second = store.claim("w2", LONG).await.expect("claim").expect("job");
+    assert_eq!(second.job.id, job.id);
+    assert_eq!(second.job.attempts, 1);
+    assert_eq!(
+        scalar(
+            &dir,
+            "SELECT COUNT(*) FROM audit WHERE action = 'job.release'"
+        )
+        .await,
+        1
+    );
+    // A finished job cannot be released.
+    store
+        .cancel(job.id, entry("job.cancel"))
+        .await
+        .expect("cancel");
+    assert!(matches!(
+        store.release(job.id, second.lease_token, "late").await,
+        Err(StoreError::LeaseLost)
+    ));
 }
 
 #[tokio::test]
