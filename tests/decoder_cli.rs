@@ -1,4 +1,5 @@
-//! `splatmark decoder train`, `decoder eval` and `decode` end to end on tiny synthetic images
+//! `splatmark decoder train` (fresh, resumed, fine-tuned with `--init`), `decoder calibrate`,
+//! `decoder eval` and `decode` end to end on tiny synthetic images
 //! (a few seconds), and the typed error for weights that are not shipped yet.
 
 use std::path::Path;
@@ -172,6 +173,79 @@ fn train_then_eval_then_decode() {
             (one["logits"][i].as_f64().unwrap() + only_b["logits"][i].as_f64().unwrap()) / 2.0;
         assert!((two["logits"][i].as_f64().unwrap() - mean).abs() < 1e-4);
     }
+
+    // Fine-tune from these weights, then re-decide the logit map of the result.
+    let ft = dir.path().join("w/ft-8.bpk");
+    let tuned = bin()
+        .args(["decoder", "train", "--images"])
+        .arg(&images)
+        .arg("--out")
+        .arg(&ft)
+        .args([
+            "--bits",
+            "8",
+            "--crop",
+            "32",
+            "--batch-size",
+            "2",
+            "--steps",
+            "1",
+        ])
+        .args(["--attack-prob-max", "0.5", "--unmarked-crops", "1"])
+        .args(["--no-final-eval", "--init"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&tuned.stderr);
+    assert!(tuned.status.success(), "{stderr}");
+    assert!(stderr.contains("starting from"), "{stderr}");
+    let sidecar: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("w/ft-8.json")).unwrap()).unwrap();
+    assert_eq!(sidecar["decoder"], {
+        let base: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(dir.path().join("w/decoder-8.json")).unwrap())
+                .unwrap();
+        base["decoder"].clone()
+    });
+    assert_eq!(sidecar["record"]["started_from"]["record"]["steps"], 3);
+    let calibrated = dir.path().join("w/cal-8.bpk");
+    let report = run(bin()
+        .args(["decoder", "calibrate", "--images"])
+        .arg(&images)
+        .args([
+            "--whitening",
+            "center",
+            "--eval-size",
+            "32",
+            "--eval-repeats",
+            "1",
+        ])
+        .arg("--weights")
+        .arg(&ft)
+        .arg("--out")
+        .arg(&calibrated));
+    assert_eq!(report["whitened"], true);
+    let sidecar: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("w/cal-8.json")).unwrap()).unwrap();
+    assert_eq!(sidecar["record"]["whitening"]["kind"], "centering");
+    assert!(
+        sidecar["record"]["calibrated_by"]
+            .as_str()
+            .unwrap()
+            .contains("calibrate")
+    );
+    // --init and --resume together: refused before anything is written.
+    let both = bin()
+        .args(["decoder", "train", "--images"])
+        .arg(&images)
+        .arg("--out")
+        .arg(dir.path().join("w/x.bpk"))
+        .args(["--bits", "8", "--resume", "--init"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(!both.status.success());
+    assert!(!dir.path().join("w/x.bpk").exists());
 
     // Wrong length for these weights.
     let wrong = bin()
