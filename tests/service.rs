@@ -153,6 +153,20 @@ impl TestApp {
 
     /// Polls a job until it leaves the queued/running states.
     async fn wait_job(&self, token: &str, id: &str, limit: Duration) -> Value {
+        self.wait_job_until(token, id, limit, |j| {
+            j["state"] != "queued" && j["state"] != "running"
+        })
+        .await
+    }
+
+    /// Polls a job until `done` holds for its JSON (panics after `limit`).
+    async fn wait_job_until(
+        &self,
+        token: &str,
+        id: &str,
+        limit: Duration,
+        done: impl Fn(&Value) -> bool,
+    ) -> Value {
         let t0 = Instant::now();
         loop {
             let j: Value = self
@@ -161,13 +175,39 @@ impl TestApp {
                 .json()
                 .await
                 .unwrap();
-            let s = j["state"].as_str().unwrap().to_string();
-            if s != "queued" && s != "running" {
+            if done(&j) {
                 return j;
             }
-            assert!(t0.elapsed() < limit, "job still {s} after {limit:?}: {j}");
+            assert!(
+                t0.elapsed() < limit,
+                "job still {} after {limit:?}: {j}",
+                j["state"]
+            );
             tokio::time::sleep(Duration::from_millis(200)).await;
         }
+    }
+
+    /// Uploads a small synthetic object and asks for a watermark job of `steps` steps on it;
+    /// returns the asset and job ids.
+    async fn small_object_job(&self, owner: &str, steps: usize) -> (String, String) {
+        let a: Value = self
+            .upload(owner, "s.ply", ply_bytes(&object_scene(600, 0, 5)))
+            .await
+            .json()
+            .await
+            .unwrap();
+        let id = a["id"].as_str().unwrap().to_string();
+        let r = self
+            .client
+            .post(self.url(&format!("/v1/assets/{id}/watermark")))
+            .bearer_auth(owner)
+            .json(&small_job("0badc0de", steps))
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), StatusCode::ACCEPTED);
+        let job: Value = r.json().await.unwrap();
+        (id, job["id"].as_str().unwrap().to_string())
     }
 
     fn data(&self) -> PathBuf {
@@ -651,25 +691,7 @@ async fn a_result_is_published_once_when_a_worker_dies_mid_job() {
     // First life: no workers; a worker that will "die" claims the job directly.
     let mut t = TestApp::boot(dir, cfg.clone(), master.clone(), Some(vec![])).await;
     let k = t.keys().await;
-    let a: Value = t
-        .upload(&k.owner, "s.ply", ply_bytes(&object_scene(600, 0, 5)))
-        .await
-        .json()
-        .await
-        .unwrap();
-    let id = a["id"].as_str().unwrap().to_string();
-    let job: Value = t
-        .client
-        .post(t.url(&format!("/v1/assets/{id}/watermark")))
-        .bearer_auth(&k.owner)
-        .json(&small_job("0badc0de", 3))
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
-    let job_id = job["id"].as_str().unwrap().to_string();
+    let (id, job_id) = t.small_object_job(&k.owner, 3).await;
     let store = t.app.as_ref().unwrap().store.clone();
     let dead = store
         .claim("doomed", Duration::from_secs(3))
@@ -746,44 +768,14 @@ async fn a_job_running_at_shutdown_goes_back_to_the_queue_at_once() {
     let master = MasterKey::generate().to_hex();
     let mut t = TestApp::boot(dir, cfg.clone(), master.clone(), None).await;
     let k = t.keys().await;
-    let a: Value = t
-        .upload(&k.owner, "s.ply", ply_bytes(&object_scene(600, 0, 5)))
-        .await
-        .json()
-        .await
-        .unwrap();
-    let id = a["id"].as_str().unwrap().to_string();
-    let job: Value = t
-        .client
-        .post(t.url(&format!("/v1/assets/{id}/watermark")))
-        .bearer_auth(&k.owner)
-        .json(&small_job("0badc0de", 100_000))
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
-    let job_id = job["id"].as_str().unwrap().to_string();
+    let (_, job_id) = t.small_object_job(&k.owner, 100_000).await;
     // Wait until the worker is inside the finetuning loop.
-    let t0 = Instant::now();
-    loop {
-        let j: Value = t
-            .get(&k.owner, &format!("/v1/jobs/{job_id}"))
-            .await
-            .json()
-            .await
-            .unwrap();
-        if j["state"] == "running"
-            && j["phase"] == "finetune"
-            && j["step"].as_u64().unwrap_or(0) > 0
-        {
-            assert_eq!(j["attempts"], 1, "{j}");
-            break;
-        }
-        assert!(t0.elapsed() < Duration::from_secs(300), "never ran: {j}");
-        tokio::time::sleep(Duration::from_millis(200)).await;
-    }
+    let j = t
+        .wait_job_until(&k.owner, &job_id, Duration::from_secs(300), |j| {
+            j["state"] == "running" && j["phase"] == "finetune" && j["step"].as_u64() > Some(0)
+        })
+        .await;
+    assert_eq!(j["attempts"], 1, "{j}");
     let store = t.app.as_ref().unwrap().store.clone();
     let stopped = Instant::now();
     t.stop().await;
@@ -812,21 +804,12 @@ async fn a_job_running_at_shutdown_goes_back_to_the_queue_at_once() {
 
     // The next start picks it up at once (attempt 1 again).
     let mut t = TestApp::boot(t.dir, cfg, master, None).await;
-    let t0 = Instant::now();
-    loop {
-        let j: Value = t
-            .get(&k.owner, &format!("/v1/jobs/{job_id}"))
-            .await
-            .json()
-            .await
-            .unwrap();
-        if j["state"] == "running" {
-            assert_eq!(j["attempts"], 1, "{j}");
-            break;
-        }
-        assert!(t0.elapsed() < Duration::from_secs(60), "not picked up: {j}");
-        tokio::time::sleep(Duration::from_millis(200)).await;
-    }
+    let j = t
+        .wait_job_until(&k.owner, &job_id, Duration::from_secs(60), |j| {
+            j["state"] == "running"
+        })
+        .await;
+    assert_eq!(j["attempts"], 1, "{j}");
     let r = t
         .client
         .delete(t.url(&format!("/v1/jobs/{job_id}")))

@@ -1466,20 +1466,7 @@ pub(crate) mod tests {
         config.ramp_steps = 1;
         config.keep_checkpoints = 2;
         let set = synthetic_set(4, 48, 2);
-        let probe = Tensor::<4>::from_data(
-            TensorData::new(
-                set.sample_batch(&mut EotRng::new(99), 2, 32, 1.0, false),
-                [2, 3, 32, 32],
-            ),
-            &Device::flex(),
-        );
-        let outputs = |t: &Trainer| {
-            t.model()
-                .decoder
-                .forward(probe.clone())
-                .try_into_vec_as::<f32>()
-                .unwrap()
-        };
+        let outputs = probe_outputs(&set, 99);
 
         // Both runs start from the same weights (burn's weight-init RNG is global, so two
         // `Trainer::new` in parallel tests need not draw the same ones).
@@ -1533,6 +1520,24 @@ pub(crate) mod tests {
         assert_eq!(longer.config.lr, config.lr);
     }
 
+    /// The decoder logits (inference mode) of a trainer on two fixed 32² crops of `set`.
+    fn probe_outputs(set: &ImageSet, seed: u64) -> impl Fn(&Trainer) -> Vec<f32> + use<> {
+        let probe = Tensor::<4>::from_data(
+            TensorData::new(
+                set.sample_batch(&mut EotRng::new(seed), 2, 32, 1.0, false),
+                [2, 3, 32, 32],
+            ),
+            &Device::flex(),
+        );
+        move |t: &Trainer| {
+            t.model()
+                .decoder
+                .forward(probe.clone())
+                .try_into_vec_as::<f32>()
+                .unwrap()
+        }
+    }
+
     /// Trains `config` for its steps on `set` and writes the artifact (with its encoder) to
     /// `out`, without the held-out evaluation.
     fn tiny_artifact(config: TrainConfig, set: ImageSet, out: &Path) -> Trainer {
@@ -1555,20 +1560,7 @@ pub(crate) mod tests {
             ..tiny_config()
         };
         let trained = tiny_artifact(base.clone(), set.clone(), &out);
-        let probe = Tensor::<4>::from_data(
-            TensorData::new(
-                set.sample_batch(&mut EotRng::new(5), 2, 32, 1.0, false),
-                [2, 3, 32, 32],
-            ),
-            &Device::flex(),
-        );
-        let outputs = |t: &Trainer| {
-            t.model()
-                .decoder
-                .forward(probe.clone())
-                .try_into_vec_as::<f32>()
-                .unwrap()
-        };
+        let outputs = probe_outputs(&set, 5);
 
         // Another architecture and strength asked for: the artifact's win; the rest is ours.
         let wanted = TrainConfig {

@@ -490,17 +490,7 @@ impl Store {
         let reason = truncate(reason, MAX_ERROR);
         let mut tx = self.begin_immediate().await?;
         let id = job.to_string();
-        let r = sqlx::query(
-            "SELECT asset_id, attempts, worker FROM jobs \
-             WHERE id = ? AND state = 'running' AND lease_token = ?",
-        )
-        .bind(&id)
-        .bind(token.to_string())
-        .fetch_optional(&mut *tx)
-        .await?
-        .ok_or(StoreError::LeaseLost)?;
-        let attempts: i64 = r.try_get("attempts")?;
-        let worker: Option<String> = r.try_get("worker")?;
+        let held = held_job(&mut tx, &id, token).await?;
         let now = time::now();
         sqlx::query(
             "UPDATE jobs SET state = 'queued', attempts = MAX(attempts - 1, 0), \
@@ -512,10 +502,10 @@ impl Store {
         .bind(&id)
         .execute(&mut *tx)
         .await?;
-        let mut entry = AuditEntry::new(worker.unwrap_or_else(|| "system".into()), "job.release");
+        let mut entry = AuditEntry::new(held.worker, "job.release");
         entry.job_id = Some(job);
-        entry.asset_id = Some(parse_uuid(&r.try_get::<String, _>("asset_id")?)?);
-        entry.details = serde_json::json!({ "attempt": attempts, "reason": reason });
+        entry.asset_id = Some(held.asset_id);
+        entry.details = serde_json::json!({ "attempt": held.attempts, "reason": reason });
         audit::append_in(&mut tx, &entry).await?;
         tx.commit().await?;
         Ok(())
@@ -529,22 +519,16 @@ impl Store {
         let error = truncate(error, MAX_ERROR);
         let mut tx = self.begin_immediate().await?;
         let id = job.to_string();
-        let r = sqlx::query(
-            "SELECT asset_id, attempts, max_attempts, worker FROM jobs \
-             WHERE id = ? AND state = 'running' AND lease_token = ?",
-        )
-        .bind(&id)
-        .bind(token.to_string())
-        .fetch_optional(&mut *tx)
-        .await?
-        .ok_or(StoreError::LeaseLost)?;
-        let attempts: i64 = r.try_get("attempts")?;
-        let max: i64 = r.try_get("max_attempts")?;
-        let worker: Option<String> = r.try_get("worker")?;
+        let HeldJob {
+            asset_id,
+            attempts,
+            max_attempts: max,
+            worker,
+        } = held_job(&mut tx, &id, token).await?;
         let now = time::now();
-        let mut entry = AuditEntry::new(worker.unwrap_or_else(|| "system".into()), "job.fail");
+        let mut entry = AuditEntry::new(worker, "job.fail");
         entry.job_id = Some(job);
-        entry.asset_id = Some(parse_uuid(&r.try_get::<String, _>("asset_id")?)?);
+        entry.asset_id = Some(asset_id);
         let state = if attempts < max {
             let retry_at = time::after(backoff(attempts));
             sqlx::query(
@@ -607,6 +591,35 @@ impl Store {
         tx.commit().await?;
         Ok(out)
     }
+}
+
+/// A running job as its lease holder sees it.
+struct HeldJob {
+    asset_id: Uuid,
+    attempts: i64,
+    max_attempts: i64,
+    /// The worker holding it ("system" when unknown).
+    worker: String,
+}
+
+/// The running job `id` if `token` holds its lease, else `LeaseLost`.
+async fn held_job(tx: &mut SqliteConnection, id: &str, token: Uuid) -> Result<HeldJob> {
+    let r = sqlx::query(
+        "SELECT asset_id, attempts, max_attempts, worker FROM jobs \
+         WHERE id = ? AND state = 'running' AND lease_token = ?",
+    )
+    .bind(id)
+    .bind(token.to_string())
+    .fetch_optional(&mut *tx)
+    .await?
+    .ok_or(StoreError::LeaseLost)?;
+    let worker: Option<String> = r.try_get("worker")?;
+    Ok(HeldJob {
+        asset_id: parse_uuid(&r.try_get::<String, _>("asset_id")?)?,
+        attempts: r.try_get("attempts")?,
+        max_attempts: r.try_get("max_attempts")?,
+        worker: worker.unwrap_or_else(|| "system".into()),
+    })
 }
 
 /// Associated data sealing a job's message.
