@@ -213,7 +213,7 @@ impl WhiteningReport {
 }
 
 /// How the artifact was trained.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct TrainingRecord {
     /// Optimisation steps done.
     pub steps: usize,

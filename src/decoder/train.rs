@@ -1129,18 +1129,7 @@ pub fn calibrate(
     model.sidecar.whitening = whitening;
     let _ = writeln!(log, "evaluating on {} held-out images…", held_out.len());
     let evaluation = eval::evaluate_on(&model, &held_out.images, eval, &device)?;
-    let record = model.sidecar.record.get_or_insert(TrainingRecord {
-        steps: 0,
-        wall_s: 0.0,
-        images_per_s: None,
-        final_log: None,
-        whitening: None,
-        held_out: None,
-        command: None,
-        data: None,
-        started_from: None,
-        calibrated_by: None,
-    });
+    let record = model.sidecar.record.get_or_insert_default();
     record.whitening = report;
     record.held_out = Some(evaluation);
     record.calibrated_by = command;
