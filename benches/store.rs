@@ -109,7 +109,7 @@ async fn run(n: u32) -> Result<(), Box<dyn std::error::Error>> {
             claimed.job.id,
             claimed.lease_token,
             asset,
-            &message,
+            &claimed.key,
             &recs,
             serde_json::json!({ "bench": true }),
             AuditEntry::new("bench", "watermark.publish"),

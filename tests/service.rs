@@ -18,6 +18,7 @@ use splatmark::scene::synthetic::object_scene;
 use splatmark::scene::{Gaussians, Limits, read_scene_bytes, write_ply};
 use splatmark::store::MasterKey;
 use splatmark::verify::eval::render_views;
+use splatmark::verify::message::parse_hex;
 
 /// A running server with its own data folder and an HTTP client.
 struct TestApp {
@@ -341,6 +342,13 @@ async fn upload_watermark_download_render_verify_round_trip() {
     assert_eq!(v["detected"], true, "{v}");
     assert_eq!(v["best"]["asset_id"].as_str().unwrap(), marked_id);
     assert_eq!(v["candidates_tested"], 1);
+    // What the scene carries is the payload (message ⊕ the job's secret mask), not the message:
+    // the decoded bits agree with the message only as a random string would (≥ 30 of 32 with a
+    // uniformly random mask: probability about 1e-7).
+    let decoded = parse_hex(v["decoded"]["32"].as_str().unwrap(), 32).unwrap();
+    let raw = parse_hex(message, 32).unwrap();
+    let agree = decoded.iter().zip(&raw).filter(|(a, b)| a == b).count();
+    assert!(agree < 30, "decoded {} vs message {message}", v["decoded"]);
     let by_original = t.verify(&k.verifier, &imgs, Some(&id)).await;
     assert_eq!(by_original["detected"], true, "{by_original}");
     let any = t.verify(&k.verifier, &imgs, None).await;
@@ -730,7 +738,7 @@ async fn a_result_is_published_once_when_a_worker_dies_mid_job() {
                 cameras_blob: None,
                 cameras_format: None,
             },
-            &dead.message,
+            &dead.key,
             &[],
             json!({}),
             splatmark::store::AuditEntry {

@@ -106,7 +106,7 @@ pub async fn verify(
             "no 'image' field: submit at least one rendered image",
         ));
     }
-    // Candidates: the asset's message (or its watermarked versions'), or every registered one.
+    // Candidates: the asset's payload (or its watermarked versions'), or every registered one.
     let candidates: Vec<Candidate> = match asset_id {
         Some(id) => {
             let a = st
@@ -126,10 +126,10 @@ pub async fn verify(
             };
             let mut c = vec![];
             for id in ids {
-                if let Some(message) = st.store.message_of(id).await? {
+                if let Some(key) = st.store.key_of(id).await? {
                     c.push(Candidate {
                         asset_id: id,
-                        message,
+                        payload: key.payload(),
                     });
                 }
             }
@@ -142,13 +142,16 @@ pub async fn verify(
         }
         None => st
             .store
-            .all_messages()
+            .all_keys()
             .await?
             .into_iter()
-            .map(|(asset_id, message)| Candidate { asset_id, message })
+            .map(|(asset_id, key)| Candidate {
+                asset_id,
+                payload: key.payload(),
+            })
             .collect(),
     };
-    let mut lengths: Vec<usize> = candidates.iter().map(|c| c.message.len()).collect();
+    let mut lengths: Vec<usize> = candidates.iter().map(|c| c.payload.len()).collect();
     lengths.sort_unstable();
     lengths.dedup();
     if lengths.is_empty() {

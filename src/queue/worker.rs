@@ -218,7 +218,8 @@ async fn run_job(ctx: &Ctx, w: &WorkerSpec, c: Claimed) {
         max_file_bytes: None,
     };
     let format = asset.format.clone();
-    let message = c.message.clone();
+    // The embedded bits are the payload (message ⊕ the job's secret mask): `store::keys`.
+    let message = c.key.payload();
     let bits = job.bits as usize;
     let cancel_b = cancel.clone();
     let mut blocking = tokio::task::spawn_blocking(move || {
@@ -394,15 +395,7 @@ async fn run_job(ctx: &Ctx, w: &WorkerSpec, c: Claimed) {
     };
     match ctx
         .store
-        .publish_result(
-            job.id,
-            token,
-            new,
-            &c.message,
-            &out.records,
-            out.report,
-            audit,
-        )
+        .publish_result(job.id, token, new, &c.key, &out.records, out.report, audit)
         .await
     {
         Ok(a) => {

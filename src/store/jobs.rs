@@ -2,11 +2,12 @@
 //! worker renews by heartbeat) → `done`; a failure makes it `failed` (waits out an exponential
 //! backoff, then is claimable again) or, after `max_attempts`, `dead` with its error kept; a
 //! lease that expires puts it back in the queue (or `dead`). `cancelled` is final.
-//! The message is stored sealed (associated data `job:<id>`), like keys.
+//! The message is stored sealed (associated data `job:<id>`) with the secret mask drawn for it
+//! when the job is queued (`job:<id>/mask`): the job's [`WatermarkKey`], which becomes the result's.
 
 use super::audit::{self, AuditEntry};
 use super::error::{Result, StoreError};
-use super::keys::validate_message;
+use super::keys::{WatermarkKey, validate_message};
 use super::{Store, parse_opt_uuid, parse_uuid, time, to_i64, to_u64};
 use serde::{Deserialize, Serialize};
 use sqlx::Row;
@@ -181,8 +182,8 @@ pub struct Job {
 pub struct Claimed {
     pub job: Job,
     pub lease_token: Uuid,
-    /// The decrypted message to embed.
-    pub message: Vec<bool>,
+    /// The decrypted key; the worker embeds its [`payload`](WatermarkKey::payload).
+    pub key: WatermarkKey,
 }
 
 /// Progress a worker reports with its heartbeat.
@@ -213,8 +214,8 @@ impl Store {
         let mut tx = self.begin_immediate().await?;
         if let Some(key) = &j.idempotency_key {
             let existing = sqlx::query(
-                "SELECT id, asset_id, bits, options, max_attempts, message_nonce, message_ct \
-                 FROM jobs WHERE owner = ? AND idempotency_key = ?",
+                "SELECT id, asset_id, bits, options, max_attempts, message_nonce, message_ct, \
+                 mask_nonce, mask_ct FROM jobs WHERE owner = ? AND idempotency_key = ?",
             )
             .bind(&j.owner)
             .bind(key)
@@ -225,11 +226,9 @@ impl Store {
                 let stored_options: String = r.try_get("options")?;
                 let stored_options: serde_json::Value = serde_json::from_str(&stored_options)
                     .map_err(|e| StoreError::corrupt(format!("job options: {e}")))?;
-                let message = self.cipher().open_bits(
-                    &r.try_get::<Vec<u8>, _>("message_nonce")?,
-                    &r.try_get::<Vec<u8>, _>("message_ct")?,
-                    job_aad(&id).as_bytes(),
-                )?;
+                let message = self
+                    .open_key(&r, "message_nonce", "message_ct", &job_aad(&id))?
+                    .message;
                 let same = r.try_get::<String, _>("asset_id")? == j.asset_id.to_string()
                     && r.try_get::<i64, _>("bits")? == i64::from(j.bits)
                     && r.try_get::<i64, _>("max_attempts")? == i64::from(j.max_attempts)
@@ -255,21 +254,22 @@ impl Store {
             Some(_) => return Err(StoreError::invalid("only an original can be watermarked")),
         }
         let id = Uuid::new_v4().to_string();
-        let sealed = self
-            .cipher()
-            .seal_bits(&j.message, job_aad(&id).as_bytes())?;
+        let key = WatermarkKey::draw(j.message.clone());
+        let sealed = self.seal_key(&key, &job_aad(&id))?;
         let now = time::now();
         sqlx::query(
-            "INSERT INTO jobs (id, asset_id, owner, bits, message_nonce, message_ct, options, \
-             idempotency_key, state, max_attempts, not_before, created_at, updated_at) \
-             VALUES (?, ?, ?, ?, ?, ?, ?, ?, 'queued', ?, ?, ?, ?)",
+            "INSERT INTO jobs (id, asset_id, owner, bits, message_nonce, message_ct, mask_nonce, \
+             mask_ct, options, idempotency_key, state, max_attempts, not_before, created_at, \
+             updated_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, 'queued', ?, ?, ?, ?)",
         )
         .bind(&id)
         .bind(j.asset_id.to_string())
         .bind(&j.owner)
         .bind(i64::from(j.bits))
-        .bind(sealed.nonce)
-        .bind(sealed.ciphertext)
+        .bind(sealed.message.nonce)
+        .bind(sealed.message.ciphertext)
+        .bind(sealed.mask.nonce)
+        .bind(sealed.mask.ciphertext)
         .bind(&options)
         .bind(&j.idempotency_key)
         .bind(i64::from(j.max_attempts))
@@ -321,7 +321,7 @@ impl Store {
         let mut tx = self.begin_immediate().await?;
         let now = time::now();
         let row = sqlx::query(
-            "SELECT id, message_nonce, message_ct FROM jobs \
+            "SELECT id, message_nonce, message_ct, mask_nonce, mask_ct FROM jobs \
              WHERE state IN ('queued', 'failed') AND not_before <= ? \
              ORDER BY created_at, rowid LIMIT 1",
         )
@@ -333,11 +333,7 @@ impl Store {
             return Ok(None);
         };
         let id: String = r.try_get("id")?;
-        let message = match self.cipher().open_bits(
-            &r.try_get::<Vec<u8>, _>("message_nonce")?,
-            &r.try_get::<Vec<u8>, _>("message_ct")?,
-            job_aad(&id).as_bytes(),
-        ) {
+        let key = match self.open_key(&r, "message_nonce", "message_ct", &job_aad(&id)) {
             Ok(m) => m,
             Err(e) => {
                 // Never hand out a job whose message cannot be read; do not block the queue.
@@ -374,7 +370,7 @@ impl Store {
         Ok(Some(Claimed {
             job,
             lease_token: token,
-            message,
+            key,
         }))
     }
 

@@ -4,7 +4,7 @@ use super::assets::{self, Asset, AssetKind, NewAsset};
 use super::attribution;
 use super::audit::{self, AuditEntry};
 use super::error::{Result, StoreError};
-use super::keys::validate_message;
+use super::keys::{WatermarkKey, validate_message};
 use super::{Store, time};
 use crate::embed::attribution::AttributionRecord;
 use sqlx::Row;
@@ -14,7 +14,7 @@ impl Store {
     /// Publishes the result of `job` in one `BEGIN IMMEDIATE` transaction, all or nothing: checks
     /// that the job is running under `token` (else `LeaseLost`, nothing written), inserts the
     /// watermarked asset (`source_job_id` = the job, unique; `parent_id` = the job's asset when
-    /// `None`), its sealed message, every attribution record and the embed `report`, marks the
+    /// `None`), its sealed key (which must be the job's), every attribution record and the embed `report`, marks the
     /// job done with `result_asset_id`, and appends the audit row (`asset_id`, `job_id` filled in
     /// when `None`). A second publish, a stale token or a lease taken over by another worker
     /// writes nothing. `Invalid` when the asset or message does not match the job (the job keeps
@@ -25,12 +25,12 @@ impl Store {
         job: Uuid,
         token: Uuid,
         mut asset: NewAsset,
-        message: &[bool],
+        key: &WatermarkKey,
         attribution: &[AttributionRecord],
         report: serde_json::Value,
         mut audit_entry: AuditEntry,
     ) -> Result<Asset> {
-        validate_message(message)?;
+        validate_message(&key.message)?;
         if asset.kind != AssetKind::Watermarked {
             return Err(StoreError::invalid("a job publishes a watermarked asset"));
         }
@@ -50,7 +50,8 @@ impl Store {
         let mut tx = self.begin_immediate().await?;
         let id = job.to_string();
         let row = sqlx::query(
-            "SELECT asset_id, bits FROM jobs WHERE id = ? AND state = 'running' AND lease_token = ?",
+            "SELECT asset_id, bits, message_nonce, message_ct, mask_nonce, mask_ct FROM jobs \
+             WHERE id = ? AND state = 'running' AND lease_token = ?",
         )
         .bind(&id)
         .bind(token.to_string())
@@ -59,11 +60,20 @@ impl Store {
         .ok_or(StoreError::LeaseLost)?;
         let original: String = row.try_get("asset_id")?;
         let bits: i64 = row.try_get("bits")?;
-        if bits != message.len() as i64 {
+        if bits != key.bits() as i64 {
             return Err(StoreError::invalid(format!(
                 "the job embeds {bits} bits, the message has {}",
-                message.len()
+                key.bits()
             )));
+        }
+        if self.open_key(
+            &row,
+            "message_nonce",
+            "message_ct",
+            &super::jobs::job_aad(&id),
+        )? != *key
+        {
+            return Err(StoreError::invalid("the key is not the job's"));
         }
         let original = super::parse_uuid(&original)?;
         if *asset.parent_id.get_or_insert(original) != original {
@@ -81,7 +91,7 @@ impl Store {
             .bind(seq)
             .execute(&mut *tx)
             .await?;
-        self.insert_key_in(&mut tx, stored.id, message).await?;
+        self.insert_key_in(&mut tx, stored.id, key).await?;
         attribution::insert_in(&mut tx, seq, attribution).await?;
         let now = time::now();
         sqlx::query(

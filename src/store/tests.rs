@@ -185,7 +185,7 @@ async fn publish(
             c.job.id,
             c.lease_token,
             asset,
-            &c.message,
+            &c.key,
             recs,
             serde_json::json!({ "psnr": 41.5 }),
             entry("watermark.publish"),
@@ -458,32 +458,32 @@ async fn messages_are_never_stored_in_plaintext() {
         .await
         .expect("claim")
         .expect("a job");
-    assert_eq!(c.message, msg);
+    assert_eq!(c.key.message, msg);
     let wm = publish(&store, &c, &records(10)).await.expect("publish");
-    assert_eq!(
-        store.message_of(wm.id).await.expect("message"),
-        Some(msg.clone())
-    );
+    assert_eq!(store.key_of(wm.id).await.expect("key"), Some(c.key.clone()));
 
-    let ascii = crypto::bits_to_ascii(&msg);
-    let packed: Vec<u8> = msg
-        .chunks(8)
-        .map(|b| b.iter().fold(0u8, |acc, &x| acc << 1 | u8::from(x)))
-        .collect();
-    let hex_lower = hex::encode(&packed);
-    let hex_upper = hex_lower.to_uppercase();
+    // Neither the message, nor the mask, nor the payload is in any file in any encoding.
     let bytes = all_files_bytes(&dir);
     assert!(bytes.len() > 4096, "database files found");
-    for needle in [
-        &ascii[..],
-        &packed[..],
-        hex_lower.as_bytes(),
-        hex_upper.as_bytes(),
-    ] {
-        assert!(
-            !contains(&bytes, needle),
-            "message found in the database files"
-        );
+    for secret in [&msg, &c.key.mask, &c.key.payload()] {
+        let ascii = crypto::bits_to_ascii(secret);
+        let packed: Vec<u8> = secret
+            .chunks(8)
+            .map(|b| b.iter().fold(0u8, |acc, &x| acc << 1 | u8::from(x)))
+            .collect();
+        let hex_lower = hex::encode(&packed);
+        let hex_upper = hex_lower.to_uppercase();
+        for needle in [
+            &ascii[..],
+            &packed[..],
+            hex_lower.as_bytes(),
+            hex_upper.as_bytes(),
+        ] {
+            assert!(
+                !contains(&bytes, needle),
+                "a secret found in the database files"
+            );
+        }
     }
     // Sanity of the grep itself: the owner name is there in plaintext.
     assert!(contains(&bytes, b"alice"));
@@ -507,14 +507,84 @@ async fn tampered_key_ciphertext_is_a_crypto_error() {
     .execute(&mut conn)
     .await
     .expect("tamper");
-    assert!(matches!(
-        store.message_of(wm.id).await,
-        Err(StoreError::Crypto)
-    ));
-    assert!(matches!(
-        store.all_messages().await,
-        Err(StoreError::Crypto)
-    ));
+    assert!(matches!(store.key_of(wm.id).await, Err(StoreError::Crypto)));
+    assert!(matches!(store.all_keys().await, Err(StoreError::Crypto)));
+}
+
+#[tokio::test]
+async fn every_job_gets_a_secret_random_mask_and_its_result_keeps_it() {
+    let (dir, store) = setup().await;
+    let a = original(&store).await;
+    // Two jobs with one message: two independent masks, so two different payloads.
+    let msg = message(64, 7);
+    let mut keys = Vec::new();
+    for _ in 0..2 {
+        store
+            .enqueue(new_job(a.id, msg.clone(), None, 3), entry("job.enqueue"))
+            .await
+            .expect("enqueue");
+        let c = store
+            .claim("w1", LONG)
+            .await
+            .expect("claim")
+            .expect("a job");
+        assert_eq!(c.key.message, msg);
+        assert_eq!(c.key.mask.len(), 64);
+        let ones = c.key.mask.iter().filter(|&&b| b).count();
+        // 64 fair coins: outside 8..=56 ones with probability < 1e-9.
+        assert!((8..=56).contains(&ones), "{ones} ones in the mask");
+        keys.push(c);
+    }
+    assert_ne!(keys[0].key.mask, keys[1].key.mask);
+    assert_ne!(keys[0].key.payload(), keys[1].key.payload());
+    assert!(
+        !format!("{:?}", keys[0].key).contains("true"),
+        "Debug hides the key"
+    );
+
+    // A worker cannot register another key than its job's.
+    let c = &keys[0];
+    let other = crate::store::WatermarkKey::unmasked(msg.clone());
+    let r = store
+        .publish_result(
+            c.job.id,
+            c.lease_token,
+            watermarked(&store, a.id, 10, b"w0"),
+            &other,
+            &records(10),
+            serde_json::Value::Null,
+            entry("watermark.publish"),
+        )
+        .await;
+    assert!(matches!(r, Err(StoreError::Invalid(_))), "{r:?}");
+    let wm = publish(&store, c, &records(10)).await.expect("publish");
+    assert_eq!(store.key_of(wm.id).await.expect("key"), Some(c.key.clone()));
+
+    // A key stored before masks existed (NULL mask) reads as unmasked: payload = message.
+    let mut conn = raw(&dir).await;
+    sqlx::query("UPDATE keys SET mask_nonce = NULL, mask_ct = NULL")
+        .execute(&mut conn)
+        .await
+        .expect("legacy row");
+    let legacy = store.key_of(wm.id).await.expect("key").expect("a key");
+    assert_eq!(legacy.payload(), msg);
+    // Half a mask (nonce without ciphertext) or a mask sealed for another row does not open.
+    let other_job = keys[1].job.id.to_string();
+    sqlx::query(
+        "UPDATE keys SET mask_nonce = (SELECT mask_nonce FROM jobs WHERE id = ?), \
+         mask_ct = (SELECT mask_ct FROM jobs WHERE id = ?)",
+    )
+    .bind(&other_job)
+    .bind(&other_job)
+    .execute(&mut conn)
+    .await
+    .expect("swap");
+    assert!(matches!(store.key_of(wm.id).await, Err(StoreError::Crypto)));
+    sqlx::query("UPDATE keys SET mask_ct = NULL")
+        .execute(&mut conn)
+        .await
+        .expect("half");
+    assert!(matches!(store.key_of(wm.id).await, Err(StoreError::Crypto)));
 }
 
 // ---- assets --------------------------------------------------------------------------------
@@ -1021,13 +1091,10 @@ async fn publish_result_is_exactly_once() {
         1
     );
     assert_eq!(store.watermarked_of(a.id).await.expect("wm").len(), 1);
-    assert_eq!(
-        store.message_of(wm.id).await.expect("msg"),
-        Some(c.message.clone())
-    );
-    assert_eq!(store.message_of(a.id).await.expect("msg"), None);
-    let all = store.all_messages().await.expect("all");
-    assert_eq!(all, vec![(wm.id, c.message.clone())]);
+    assert_eq!(store.key_of(wm.id).await.expect("key"), Some(c.key.clone()));
+    assert_eq!(store.key_of(a.id).await.expect("key"), None);
+    let all = store.all_keys().await.expect("all");
+    assert_eq!(all, vec![(wm.id, c.key.clone())]);
     assert_eq!(
         store.report_of(wm.id).await.expect("report"),
         Some(serde_json::json!({ "psnr": 41.5 }))
@@ -1095,7 +1162,7 @@ async fn a_publish_failing_half_way_rolls_back_everything() {
             job.id,
             c.lease_token,
             short,
-            &c.message,
+            &c.key,
             &records(10),
             serde_json::Value::Null,
             entry("watermark.publish"),
@@ -1107,7 +1174,10 @@ async fn a_publish_failing_half_way_rolls_back_everything() {
             job.id,
             c.lease_token,
             watermarked(&store, a.id, 10, b"w"),
-            &c.message[..31],
+            &crate::store::WatermarkKey {
+                message: c.key.message[..31].to_vec(),
+                mask: c.key.mask[..31].to_vec(),
+            },
             &records(10),
             serde_json::Value::Null,
             entry("watermark.publish"),

@@ -1,5 +1,5 @@
 //! A dispute: rendered images are decoded once per message length and tested against every
-//! candidate message, with p-values corrected for the number of candidates tested.
+//! candidate's embedded bits, with p-values corrected for the number of candidates tested.
 
 use std::collections::BTreeMap;
 
@@ -9,11 +9,12 @@ use uuid::Uuid;
 use super::message::to_hex;
 use super::stats::{Detection, StatsError, detect};
 
-/// A registered message the images are tested against.
+/// A registered watermark the images are tested against.
 #[derive(Clone, Debug)]
 pub struct Candidate {
     pub asset_id: Uuid,
-    pub message: Vec<bool>,
+    /// The embedded bits (for the service, the key's payload `message ⊕ mask`).
+    pub payload: Vec<bool>,
 }
 
 /// One candidate's outcome.
@@ -52,14 +53,14 @@ pub fn judge(
         .iter()
         .map(|c| {
             let d = decoded
-                .get(&c.message.len())
+                .get(&c.payload.len())
                 .ok_or(StatsError::LengthMismatch {
                     decoded: 0,
-                    message: c.message.len(),
+                    message: c.payload.len(),
                 })?;
             Ok(CandidateResult {
                 asset_id: c.asset_id,
-                detection: detect(d, &c.message, k, fpr)?,
+                detection: detect(d, &c.payload, k, fpr)?,
             })
         })
         .collect::<Result<Vec<_>, StatsError>>()?;
@@ -105,12 +106,12 @@ mod tests {
         let mut cands: Vec<Candidate> = (0..9)
             .map(|i| Candidate {
                 asset_id: Uuid::from_u128(i),
-                message: m.iter().map(|&b| !b).collect(), // 1 of 32
+                payload: m.iter().map(|&b| !b).collect(), // 1 of 32
             })
             .collect();
         cands.push(Candidate {
             asset_id: Uuid::from_u128(99),
-            message: m,
+            payload: m,
         });
         let v = judge(&decoded, &cands, 1e-6, 3).unwrap();
         assert_eq!(v.candidates_tested, 10);
@@ -132,7 +133,7 @@ mod tests {
         assert!(!v.detected && v.best.is_none() && v.candidates_tested == 0);
         let c = Candidate {
             asset_id: Uuid::nil(),
-            message: vec![true; 48],
+            payload: vec![true; 48],
         };
         assert!(judge(&decoded, &[c], 1e-6, 10).is_err());
     }

@@ -3,7 +3,11 @@
 //!
 //! The null hypothesis is "this image carries no (or another) watermark": each of the `n`
 //! decoded bits then matches the registered message with probability 1/2, independently, so the
-//! number of matching bits is `X ~ Binomial(n, 1/2)`. Everything here is computed exactly (no
+//! number of matching bits is `X ~ Binomial(n, 1/2)`. That holds exactly when the tested bits
+//! are uniformly random and independent of the image — which the service guarantees by testing
+//! the payload `message ⊕ secret random mask` (`store::keys`) — but not for a fixed, chosen bit
+//! string: a decoder's bits are biased on natural images (`docs/DECODER.md`), so for a message
+//! that follows the bias these p-values are optimistic. Everything here is computed exactly (no
 //! normal approximation):
 //!
 //! * [`binomial_tail`] — the one-sided p-value `P[X ≥ k]`, and [`log10_binomial_tail`], its
