@@ -11,7 +11,7 @@ use serde_json::{Value, json};
 use splatmark::app::App;
 use splatmark::config::Config;
 use splatmark::embed::pipeline::split_views;
-use splatmark::queue::JobSpec;
+use splatmark::queue::{JobOptions, JobSpec};
 use splatmark::render::RenderOptions;
 use splatmark::scene::orbit::orbit_cameras;
 use splatmark::scene::synthetic::object_scene;
@@ -293,7 +293,22 @@ async fn upload_watermark_download_render_verify_round_trip() {
     assert_eq!(asset["format"], "ply");
     let id = asset["id"].as_str().unwrap().to_string();
 
-    let message = "c0ffee42";
+    // The owner registers as message what the decoder already reads in the *unmarked* scene's
+    // renders — what a dishonest owner would pick to "detect" a watermark in images that carry
+    // none. The secret mask makes that useless (checked at the end).
+    let opts: JobOptions =
+        serde_json::from_value(small_job("00000000", 300)["options"].clone()).unwrap();
+    let spec = opts.resolve(&config(t.dir.path())).unwrap();
+    let views = training_views(&original, &spec);
+    let ro = RenderOptions {
+        background: spec.embed.finetune.background,
+        ..RenderOptions::default()
+    };
+    let plain = render_views(&original, &views, &ro).unwrap();
+    let before = t.verify(&k.verifier, &plain, None).await;
+    assert_eq!(before["candidates_tested"], 0, "{before}");
+    let message = before["decoded"]["32"].as_str().unwrap().to_string();
+    let message = message.as_str();
     let r = t
         .client
         .post(t.url(&format!("/v1/assets/{id}/watermark")))
@@ -331,12 +346,8 @@ async fn upload_watermark_download_render_verify_round_trip() {
     assert_eq!(meta["parent_id"].as_str().unwrap(), id);
 
     // Render what the job trained on and verify against the asset, then against everything.
-    let spec: JobSpec = serde_json::from_value(job["options"].clone()).unwrap();
-    let views = training_views(&original, &spec);
-    let ro = RenderOptions {
-        background: spec.embed.finetune.background,
-        ..RenderOptions::default()
-    };
+    let stored: JobSpec = serde_json::from_value(job["options"].clone()).unwrap();
+    assert_eq!(training_views(&original, &stored), views);
     let imgs = render_views(&marked, &views, &ro).unwrap();
     let v = t.verify(&k.verifier, &imgs, Some(&marked_id)).await;
     assert_eq!(v["detected"], true, "{v}");
@@ -353,9 +364,9 @@ async fn upload_watermark_download_render_verify_round_trip() {
     assert_eq!(by_original["detected"], true, "{by_original}");
     let any = t.verify(&k.verifier, &imgs, None).await;
     assert_eq!(any["detected"], true, "{any}");
-    // The unmarked scene's renders are not detected.
-    let plain = render_views(&original, &views, &ro).unwrap();
+    // The unmarked scene's renders are not detected, although they decode to the message.
     let v0 = t.verify(&k.verifier, &plain, Some(&marked_id)).await;
+    assert_eq!(v0["decoded"]["32"], message, "{v0}");
     assert_eq!(v0["detected"], false, "{v0}");
 
     // Attribution: one record per Gaussian, carriers as the summary says.
