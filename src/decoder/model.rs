@@ -85,22 +85,6 @@ impl ConvBnRelu {
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
         self.relu.forward(self.bn.forward(self.conv.forward(x)))
     }
-
-    /// [`forward`](Self::forward) with the BatchNorm on its running statistics whatever the
-    /// device, the statistics left untouched, and gradients still flowing to every parameter.
-    fn forward_running_stats(&self, x: Tensor<4>) -> Tensor<4> {
-        let y = self.conv.forward(x);
-        let device = y.device();
-        let y = burn::tensor::module::batch_norm(
-            y,
-            self.bn.gamma.val(),
-            self.bn.beta.val(),
-            self.bn.running_mean.value().to_device(&device),
-            self.bn.running_var.value().to_device(&device),
-            self.bn.epsilon,
-        );
-        self.relu.forward(y)
-    }
 }
 
 /// Configuration of [`HiddenDecoder`].
@@ -184,25 +168,6 @@ impl HiddenDecoder {
         for layer in &self.layers {
             x = layer.forward(x);
         }
-        self.head(x)
-    }
-
-    /// Logits of RGB images as decoding computes them — every BatchNorm on its running
-    /// statistics — but with gradients to the parameters (unlike [`frozen`](Self::frozen)) and
-    /// without updating those statistics. Training uses it for a loss that must hold at
-    /// inference: on an autodiff device [`forward`](Self::forward) normalises with the batch's
-    /// own statistics, so a bias that only shows with the running statistics (the unmarked
-    /// bit bias) would be invisible to the loss.
-    pub fn forward_running_stats(&self, image: Tensor<4>) -> Tensor<2> {
-        let mut x = decoder_input(image, self.dwt_levels);
-        for layer in &self.layers {
-            x = layer.forward_running_stats(x);
-        }
-        self.head(x)
-    }
-
-    /// Global average pool and the final linear layer: `[B, L, h, w]` → `[B, L]`.
-    fn head(&self, x: Tensor<4>) -> Tensor<2> {
         let [b, l, _, _] = x.dims();
         let pooled = adaptive_avg_pool2d(x, [1, 1]).reshape([b, l]);
         self.linear.forward(pooled)
@@ -697,42 +662,6 @@ mod tests {
         let frozen = dec2.clone().frozen();
         let _ = frozen.forward(image(1, 64, 64, 9).autodiff());
         assert_eq!(to_vec(frozen.forward(y)), plain);
-    }
-
-    #[test]
-    fn running_stats_forward_decodes_like_inference_and_trains_the_parameters() {
-        // A decoder being trained (parameters on the autodiff device).
-        let dec = HiddenDecoderConfig::new(8)
-            .with_channels(8)
-            .with_depth(2)
-            .init(&device().autodiff());
-        // Move the running statistics away from 0/1 with one training-mode pass.
-        let _ = dec.forward(image(4, 64, 64, 11).autodiff());
-        let x = image(3, 64, 64, 12);
-        let inference = to_vec(dec.valid().forward(x.clone()));
-        // On the autodiff device: the inference logits …
-        let z = dec.forward_running_stats(x.clone().autodiff());
-        let running = to_vec(z.clone().inner());
-        for (a, b) in running.iter().zip(&inference) {
-            assert!((a - b).abs() < 1e-4, "{a} vs {b}");
-        }
-        // … with gradients to the weights and the BatchNorm affine parameters …
-        let grads = z.sum().backward();
-        assert!(dec.linear.weight.val().grad(&grads).is_some());
-        assert!(dec.layers[0].conv.weight.val().grad(&grads).is_some());
-        assert!(dec.layers[1].bn.gamma.val().grad(&grads).is_some());
-        // … and the running statistics untouched.
-        assert_eq!(to_vec(dec.valid().forward(x.clone())), inference);
-        // The plain forward on that device normalises with the batch's statistics instead:
-        // different logits (so the comparison above is not vacuous).
-        let batch_stats = to_vec(dec.forward(x.autodiff()).inner());
-        assert!(
-            batch_stats
-                .iter()
-                .zip(&inference)
-                .any(|(a, b)| (a - b).abs() > 1e-3),
-            "{batch_stats:?} vs {inference:?}"
-        );
     }
 
     #[test]

@@ -773,17 +773,21 @@ impl Trainer {
             } else {
                 DiffAttack::Chain(Vec::new())
             };
-            // The unmarked crops take the first group's attack and are decoded as decoding
-            // does, with the BatchNorm running statistics: the bias to remove is the one
-            // inference shows (with batch statistics the loss sat at ln 2 while the decoded
-            // bits stayed biased, measured 0.61).
+            // The unmarked crops join the first group: same attack, same forward pass (and
+            // BatchNorm batch), so they are treated like the watermarked images they must be
+            // told apart from.
             if g == 0
                 && let Some(u) = unmarked.take()
             {
-                let z = self.net.decoder.forward_running_stats(attack.apply(u)?);
-                unmarked_logits = Some(z);
+                let z = self
+                    .net
+                    .decoder
+                    .forward(attack.apply(Tensor::cat(vec![part, u], 0))?);
+                unmarked_logits = Some(z.clone().narrow(0, len, c.unmarked_crops));
+                logits.push(z.narrow(0, 0, len));
+            } else {
+                logits.push(self.net.decoder.forward(attack.apply(part)?));
             }
-            logits.push(self.net.decoder.forward(attack.apply(part)?));
         }
         let logits = Tensor::cat(logits, 0);
         let bce = bce_with_logits(logits.clone(), message);
