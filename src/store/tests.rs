@@ -102,6 +102,21 @@ async fn enqueue(store: &Store, asset: Uuid, max_attempts: u32) -> Job {
         .0
 }
 
+/// Queues a job for `msg` and claims it (the only job in the queue); its key holds `msg`.
+async fn enqueue_and_claim(store: &Store, asset: Uuid, msg: &[bool]) -> Claimed {
+    store
+        .enqueue(new_job(asset, msg.to_vec(), None, 3), entry("job.enqueue"))
+        .await
+        .expect("enqueue");
+    let c = store
+        .claim("w1", LONG)
+        .await
+        .expect("claim")
+        .expect("a job");
+    assert_eq!(c.key.message, msg);
+    c
+}
+
 /// `n` records with every role, seed kind and a NaN, as the pipeline would make them.
 fn records(n: u32) -> Vec<AttributionRecord> {
     (0..n)
@@ -449,16 +464,7 @@ async fn messages_are_never_stored_in_plaintext() {
     let (dir, store) = setup().await;
     let a = original(&store).await;
     let msg = message(64, 99);
-    store
-        .enqueue(new_job(a.id, msg.clone(), None, 3), entry("job.enqueue"))
-        .await
-        .expect("enqueue");
-    let c = store
-        .claim("w1", LONG)
-        .await
-        .expect("claim")
-        .expect("a job");
-    assert_eq!(c.key.message, msg);
+    let c = enqueue_and_claim(&store, a.id, &msg).await;
     let wm = publish(&store, &c, &records(10)).await.expect("publish");
     assert_eq!(store.key_of(wm.id).await.expect("key"), Some(c.key.clone()));
 
@@ -519,16 +525,7 @@ async fn every_job_gets_a_secret_random_mask_and_its_result_keeps_it() {
     let msg = message(64, 7);
     let mut keys = Vec::new();
     for _ in 0..2 {
-        store
-            .enqueue(new_job(a.id, msg.clone(), None, 3), entry("job.enqueue"))
-            .await
-            .expect("enqueue");
-        let c = store
-            .claim("w1", LONG)
-            .await
-            .expect("claim")
-            .expect("a job");
-        assert_eq!(c.key.message, msg);
+        let c = enqueue_and_claim(&store, a.id, &msg).await;
         assert_eq!(c.key.mask.len(), 64);
         let ones = c.key.mask.iter().filter(|&&b| b).count();
         // 64 fair coins: outside 8..=56 ones with probability < 1e-9.
