@@ -8,7 +8,7 @@ use std::path::Path;
 use super::spec::JobSpec;
 use crate::decoder::WatermarkModel;
 use crate::embed::attribution::AttributionRecord;
-use crate::embed::pipeline::{EmbedError, Progress, embed, split_views};
+use crate::embed::pipeline::{EmbedError, EmbedReport, Progress, embed, split_views};
 use crate::scene::camera::{read_cameras, resize_all};
 use crate::scene::orbit::orbit_cameras;
 use crate::scene::{Camera, Limits, SceneError, read_scene_bytes, write_ply};
@@ -55,6 +55,17 @@ pub fn job_cameras(
     }
 }
 
+/// The embedding report as the service stores it (in plaintext) and shows it to the asset's
+/// readers: everything but the embedded bits, which are the secret payload `message ⊕ mask`
+/// (`store::keys`).
+pub fn stored_report(report: &EmbedReport) -> serde_json::Result<serde_json::Value> {
+    let mut v = serde_json::to_value(report)?;
+    if let Some(o) = v.as_object_mut() {
+        o.remove("message_hex");
+    }
+    Ok(v)
+}
+
 /// Runs the embedding of `scene_bytes` (format hint `format`) and writes the watermarked scene
 /// as INRIA binary PLY to `out`. `progress` may stop the job by returning `Break`.
 #[allow(clippy::too_many_arguments)]
@@ -82,7 +93,7 @@ pub fn execute(
     let e = embed(&g, &train, message, model, &spec.embed, progress).map_err(JobError::Embed)?;
     write_ply(&e.scene, &mut *out).map_err(|e| JobError::Write(e.to_string()))?;
     out.flush().map_err(|e| JobError::Write(e.to_string()))?;
-    let report = serde_json::to_value(&e.report).map_err(|e| JobError::Write(e.to_string()))?;
+    let report = stored_report(&e.report).map_err(|e| JobError::Write(e.to_string()))?;
     Ok(JobOutput {
         gaussians: e.scene.len() as u64,
         sh_degree: e.scene.sh_degree,
