@@ -86,6 +86,10 @@ pub(crate) struct EmbedArgs {
     /// Finetuning steps.
     #[arg(long)]
     steps: Option<usize>,
+    /// After --steps, at most this many more steps until the training views decode to every bit
+    /// (8-bit renders, logits averaged over them; checked every 25 steps)
+    #[arg(long)]
+    extra_steps: Option<usize>,
     /// Views per step (logits averaged over them).
     #[arg(long)]
     views_per_step: Option<usize>,
@@ -200,6 +204,9 @@ pub(crate) fn embed_cmd(a: &EmbedArgs) -> Result<()> {
     opts.finetune.coupled |= a.coupled;
     if let Some(s) = a.steps {
         opts.finetune.steps = s;
+    }
+    if let Some(s) = a.extra_steps {
+        opts.finetune.extra_steps = s;
     }
     if let Some(v) = a.views_per_step {
         opts.finetune.views_per_step = v;

@@ -115,6 +115,13 @@ impl Default for LossWeights {
 pub struct FinetuneConfig {
     /// Optimiser steps.
     pub steps: usize,
+    /// After `steps`, keep going — at most this many more steps — until the training views
+    /// decode to every bit of the message as a dispute decodes them (each view rendered at 8
+    /// bits, logits averaged over all of them); checked at step `steps` and then every
+    /// `check_every` steps. 0 = the fixed schedule of the paper.
+    pub extra_steps: usize,
+    /// Steps between two such checks.
+    pub check_every: usize,
     /// Views rendered per step; their logits are averaged (eq. `avglogits`).
     pub views_per_step: usize,
     pub lr: LearningRates,
@@ -146,6 +153,8 @@ impl Default for FinetuneConfig {
     fn default() -> Self {
         Self {
             steps: 300,
+            extra_steps: 0,
+            check_every: 25,
             views_per_step: 2,
             lr: LearningRates::default(),
             wm_lr_scale: 1.0,
@@ -239,7 +248,62 @@ pub struct Finetuned {
     /// Per Gaussian, its share of Σ_steps ‖∂L_wm/∂θ_i‖ (sums to 1 unless the gradient was 0).
     pub wm_grad_share: Vec<f32>,
     pub log: Vec<StepLog>,
+    /// The last check of the training views (`extra_steps` > 0 only).
+    pub check: Option<ViewsCheck>,
     pub seconds: f64,
+}
+
+/// How the training views decode, as a dispute decodes them: each rendered at 8 bits, logits
+/// averaged over all of them.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ViewsCheck {
+    /// After this many steps.
+    pub step: usize,
+    /// Bits equal to the message's.
+    pub matches: usize,
+    pub bits: usize,
+    /// Smallest |averaged logit| over the bits.
+    pub min_abs_logit: f32,
+}
+
+/// The logits of the training views of `g` as a dispute decodes them: each rendered at 8 bits,
+/// logits averaged over the views.
+fn views_logits(
+    g: &Gaussians,
+    views: &[View],
+    model: &WatermarkModel,
+    opts: &RenderOptions,
+) -> Result<Vec<f32>, FinetuneError> {
+    let device = Device::flex().autodiff();
+    let mut sum = vec![0.0f32; model.bits()];
+    for v in views {
+        let r = render::render(g, &v.camera, opts)?;
+        let (w, h) = (v.camera.width as usize, v.camera.height as usize);
+        let z: Vec<f32> = model
+            .forward(as_saved(to_tensor(&r.image, w, h, &device)))
+            .try_into_vec_as::<f32>()
+            .unwrap_or_default();
+        for (s, z) in sum.iter_mut().zip(z) {
+            *s += z;
+        }
+    }
+    let n = views.len().max(1) as f32;
+    Ok(sum.into_iter().map(|s| s / n).collect())
+}
+
+impl ViewsCheck {
+    fn new(step: usize, logits: &[f32], message: &[bool]) -> Self {
+        Self {
+            step,
+            matches: logits
+                .iter()
+                .zip(message)
+                .filter(|&(&z, &m)| (z > 0.0) == m)
+                .count(),
+            bits: message.len(),
+            min_abs_logit: logits.iter().map(|z| z.abs()).fold(f32::INFINITY, f32::min),
+        }
+    }
 }
 
 /// Row-major RGB → planar `[1, 3, H, W]` tensor.
@@ -504,8 +568,9 @@ pub fn finetune(
     let mut wm_norm_sum = vec![0.0f64; g.len()];
     let mut log = Vec::with_capacity(cfg.steps);
     let per_step = cfg.views_per_step.clamp(1, views.len());
+    let mut check = None;
 
-    for step in 1..=cfg.steps {
+    for step in 1..=cfg.steps + cfg.extra_steps {
         let t0 = Instant::now();
         // Views of this step: walk shuffled epochs.
         let mut picked = Vec::with_capacity(per_step);
@@ -722,6 +787,17 @@ pub fn finetune(
         if flow.is_break() {
             return Err(FinetuneError::Cancelled { step });
         }
+        if cfg.extra_steps > 0
+            && step >= cfg.steps
+            && ((step - cfg.steps) % cfg.check_every.max(1) == 0
+                || step == cfg.steps + cfg.extra_steps)
+        {
+            let c = ViewsCheck::new(step, &views_logits(&g, views, model, render_opts)?, message);
+            check = Some(c);
+            if c.matches == c.bits {
+                break;
+            }
+        }
     }
 
     let total: f64 = wm_norm_sum.iter().sum();
@@ -733,6 +809,7 @@ pub fn finetune(
         gaussians: g,
         wm_grad_share,
         log,
+        check,
         seconds: start.elapsed().as_secs_f64(),
     })
 }
@@ -908,6 +985,57 @@ mod tests {
         let s: f32 = out.wm_grad_share.iter().sum();
         assert!((s - 1.0).abs() < 1e-3, "{s}");
         assert_eq!(out.log.len(), 40);
+    }
+
+    #[test]
+    fn extra_steps_stop_once_the_training_views_decode_the_message() {
+        let (g, views, opts) = setup();
+        let m = model(8);
+        let mk = masks(g.len(), |i| i % 4 == 0, [1.0, 1.0, 0.0, 0.0, 0.0], [0.0; 5]);
+        // What the scene already decodes: met at the first check, at step `steps`.
+        let decoded: Vec<bool> = views_logits(&g, &views, &m, &opts)
+            .unwrap()
+            .iter()
+            .map(|&z| z > 0.0)
+            .collect();
+        let cfg = FinetuneConfig {
+            extra_steps: 6,
+            check_every: 3,
+            ..config(2)
+        };
+        let run = |msg: &[bool]| {
+            finetune(
+                &g,
+                &mk,
+                &views,
+                &m,
+                msg,
+                &cfg,
+                |_| ControlFlow::Continue(()),
+            )
+            .unwrap()
+        };
+        let met = run(&decoded);
+        assert_eq!(met.log.len(), 2);
+        let c = met.check.unwrap();
+        assert_eq!((c.step, c.matches, c.bits), (2, 8, 8));
+        // Its opposite, which a few small steps cannot reach: every extra step runs, checked
+        // at steps 2, 5 and 8, and the last check says how far it got.
+        let opposite: Vec<bool> = decoded.iter().map(|b| !b).collect();
+        let missed = run(&opposite);
+        assert_eq!(missed.log.len(), 8);
+        let c = missed.check.unwrap();
+        assert_eq!(c.step, 8);
+        assert!(c.matches < 8, "{c:?}");
+        // The check decodes as a dispute does.
+        let z = views_logits(&missed.gaussians, &views, &m, &opts).unwrap();
+        assert_eq!(c, ViewsCheck::new(8, &z, &opposite));
+        // Without extra steps: the paper's fixed schedule, no check.
+        let fixed = finetune(&g, &mk, &views, &m, &opposite, &config(2), |_| {
+            ControlFlow::Continue(())
+        })
+        .unwrap();
+        assert!(fixed.check.is_none() && fixed.log.len() == 2);
     }
 
     #[test]

@@ -8,7 +8,9 @@ use std::time::Instant;
 use serde::{Deserialize, Serialize};
 
 use super::attribution::AttributionRecord;
-use super::finetune::{FinetuneConfig, FinetuneError, StepLog, View, finetune, target_views};
+use super::finetune::{
+    FinetuneConfig, FinetuneError, StepLog, View, ViewsCheck, finetune, target_views,
+};
 use super::mask::MaskConfig;
 use super::sbag::Budget;
 use super::{EmbedConfig, plan};
@@ -96,6 +98,8 @@ pub struct EmbedReport {
     pub wm_grad_share_carriers: f32,
     /// The last finetuning step.
     pub last_step: Option<StepLog>,
+    /// How the training views decoded at the last check (`finetune.extra_steps` > 0 only).
+    pub views_check: Option<ViewsCheck>,
     pub timings: Timings,
     pub options: EmbedOptions,
 }
@@ -129,7 +133,8 @@ pub fn embed(
     if cameras.is_empty() {
         return Err(EmbedError::NoViews);
     }
-    let total = opts.finetune.steps;
+    // The most steps finetuning may take (it may stop early when `extra_steps` > 0).
+    let total = opts.finetune.steps + opts.finetune.extra_steps;
     let report_phase = |p: &mut dyn FnMut(Progress) -> ControlFlow<()>, phase| match p(Progress {
         phase,
         step: 0,
@@ -210,6 +215,7 @@ pub fn embed(
         mask_vis: p.masks.vis_group,
         wm_grad_share_carriers: share,
         last_step: ft.log.last().copied(),
+        views_check: ft.check,
         timings: Timings {
             targets: t_targets,
             plan: t_plan,

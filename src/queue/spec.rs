@@ -65,6 +65,14 @@ impl JobOptions {
         if !(1..=MAX_STEPS).contains(&embed.finetune.steps) {
             return Err(format!("options.steps must be 1 to {MAX_STEPS}"));
         }
+        if embed.finetune.extra_steps > MAX_STEPS - embed.finetune.steps {
+            return Err(format!(
+                "options.embed.finetune.extra_steps: steps + extra_steps must be at most {MAX_STEPS}"
+            ));
+        }
+        if embed.finetune.check_every == 0 {
+            return Err("options.embed.finetune.check_every must be at least 1".into());
+        }
         let mut orbit = OrbitOptions {
             count: cfg.views.orbit,
             width: cfg.views.width,
@@ -152,6 +160,14 @@ mod tests {
             (json!({"orbit": {"colour": 1}}), "orbit"),
             (json!({"width": 100000}), "width"),
             (json!({"embed": {"finetune": {"steps": "many"}}}), "embed"),
+            (
+                json!({"steps": 10, "embed": {"finetune": {"extra_steps": MAX_STEPS}}}),
+                "extra_steps",
+            ),
+            (
+                json!({"embed": {"finetune": {"check_every": 0}}}),
+                "check_every",
+            ),
         ] {
             let o: JobOptions = serde_json::from_value(v).unwrap();
             let e = o.resolve(&cfg).unwrap_err();
