@@ -789,7 +789,7 @@ pub fn finetune(
         }
         if cfg.extra_steps > 0
             && step >= cfg.steps
-            && ((step - cfg.steps) % cfg.check_every.max(1) == 0
+            && ((step - cfg.steps).is_multiple_of(cfg.check_every.max(1))
                 || step == cfg.steps + cfg.extra_steps)
         {
             let c = ViewsCheck::new(step, &views_logits(&g, views, model, render_opts)?, message);
@@ -991,7 +991,12 @@ mod tests {
     fn extra_steps_stop_once_the_training_views_decode_the_message() {
         let (g, views, opts) = setup();
         let m = model(8);
-        let mk = masks(g.len(), |i| i % 4 == 0, [1.0, 1.0, 0.0, 0.0, 0.0], [0.0; 5]);
+        let mk = masks(
+            g.len(),
+            |i| i.is_multiple_of(4),
+            [1.0, 1.0, 0.0, 0.0, 0.0],
+            [0.0; 5],
+        );
         // What the scene already decodes: met at the first check, at step `steps`.
         let decoded: Vec<bool> = views_logits(&g, &views, &m, &opts)
             .unwrap()
