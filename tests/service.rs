@@ -377,6 +377,7 @@ async fn upload_watermark_download_render_verify_round_trip() {
     );
     // Neither the message nor the embedded bits are shown with the asset (its stored report).
     assert!(meta["report"]["carriers"].as_u64().unwrap() > 0, "{meta}");
+    assert!(meta["report"].get("message_hex").is_none(), "{meta}");
     let shown = meta.to_string();
     let payload = v["decoded"]["32"].as_str().unwrap();
     assert!(
