@@ -960,9 +960,11 @@ mod tests {
         })
         .unwrap();
         let after = bce_of(&out.gaussians, &views, &opts, &m, &msg);
-        // A random decoder barely reacts to 75 small Gaussians, so the drop is small; a wrong
-        // sign or a gradient routed elsewhere would raise it or leave it unchanged.
-        assert!(after < 0.998 * before, "BCE {before} → {after}");
+        // A random decoder barely reacts to 75 small Gaussians, so the drop is small and
+        // depends on the decoder's random draw (measured from 0.04 % to over 0.2 %; the draw
+        // comes from the device's RNG, which tests running in parallel share); a wrong sign or a
+        // gradient routed elsewhere would raise it or leave it unchanged.
+        assert!(after < before, "BCE {before} → {after}");
         // Carriers: colour moved, masked channels (opacity, rotation, scale) and means did not.
         let h = &out.gaussians;
         let moved = (0..g.len())
