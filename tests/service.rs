@@ -202,7 +202,12 @@ impl TestApp {
             .client
             .post(self.url(&format!("/v1/assets/{id}/watermark")))
             .bearer_auth(owner)
-            .json(&small_job("0badc0de", steps))
+            .json(&{
+                // Exactly `steps` steps: these jobs are about the queue, not the watermark.
+                let mut body = small_job("0badc0de", steps);
+                body["options"]["embed"]["finetune"]["extra_steps"] = json!(0);
+                body
+            })
             .send()
             .await
             .unwrap();
