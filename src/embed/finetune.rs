@@ -41,6 +41,7 @@ use crate::attack::diff::{
 };
 use crate::decoder::WatermarkModel;
 use crate::decoder::dwt::dwt;
+use crate::decoder::eval::decode_images;
 use crate::decoder::train::bce_with_logits;
 use crate::render::{self, RenderError, RenderOptions};
 use crate::scene::{Camera, Gaussians};
@@ -266,29 +267,22 @@ pub struct ViewsCheck {
     pub min_abs_logit: f32,
 }
 
-/// The logits of the training views of `g` as a dispute decodes them: each rendered at 8 bits,
-/// logits averaged over the views.
+/// The logits of the training views of `g` as a dispute decodes them: each rendered to an
+/// 8-bit image, decoded and the logits averaged ([`decode_images`], what `/v1/verify` runs).
 fn views_logits(
     g: &Gaussians,
     views: &[View],
     model: &WatermarkModel,
     opts: &RenderOptions,
 ) -> Result<Vec<f32>, FinetuneError> {
-    let device = Device::flex().autodiff();
-    let mut sum = vec![0.0f32; model.bits()];
-    for v in views {
-        let r = render::render(g, &v.camera, opts)?;
-        let (w, h) = (v.camera.width as usize, v.camera.height as usize);
-        let z: Vec<f32> = model
-            .forward(as_saved(to_tensor(&r.image, w, h, &device)))
-            .try_into_vec_as::<f32>()
-            .unwrap_or_default();
-        for (s, z) in sum.iter_mut().zip(z) {
-            *s += z;
-        }
-    }
-    let n = views.len().max(1) as f32;
-    Ok(sum.into_iter().map(|s| s / n).collect())
+    let images = views
+        .iter()
+        .map(|v| {
+            let r = render::render(g, &v.camera, opts)?;
+            Ok(render::to_rgb8(r.width, r.height, &r.image))
+        })
+        .collect::<Result<Vec<_>, RenderError>>()?;
+    Ok(decode_images(model, &images, &Device::flex().autodiff()).logits)
 }
 
 impl ViewsCheck {
