@@ -109,6 +109,11 @@ pub enum DiffAttack {
     Blur { sigma: f32, kernel: u32 },
     /// Counter-clockwise rotation by `degrees` about the centre, same size, black corners.
     Rotate { degrees: f32 },
+    /// The image seen as a flat picture tilted by `x_degrees` about its horizontal axis and
+    /// `y_degrees` about its vertical axis (through its centre), through a pinhole camera whose
+    /// focal length is the image width: the foreshortening of viewing a surface from another
+    /// direction. Same size, bilinear, black outside.
+    Perspective { x_degrees: f32, y_degrees: f32 },
     /// Bilinear resize of each side by `factor` (> 0); keeps the new size.
     Scale { factor: f32 },
     /// Centre crop keeping the fraction `keep` ∈ (0, 1] of the area; keeps the cropped size.
@@ -130,6 +135,7 @@ impl DiffAttack {
             Self::Noise { .. } => "noise",
             Self::Blur { .. } => "blur",
             Self::Rotate { .. } => "rotate",
+            Self::Perspective { .. } => "perspective",
             Self::Scale { .. } => "scale",
             Self::Crop { .. } => "crop",
             Self::Jpeg { .. } => "jpeg",
@@ -167,6 +173,13 @@ impl DiffAttack {
                 Ok(())
             }
             Self::Rotate { degrees } => range("degrees", degrees, true, "finite"),
+            Self::Perspective {
+                x_degrees,
+                y_degrees,
+            } => {
+                range("x_degrees", x_degrees, x_degrees.abs() < 80.0, "in (−80, 80)")?;
+                range("y_degrees", y_degrees, y_degrees.abs() < 80.0, "in (−80, 80)")
+            }
             Self::Scale { factor } => range("factor", factor, factor > 0.0, "> 0"),
             Self::Crop { keep } => range("keep", keep, keep > 0.0 && keep <= 1.0, "in (0, 1]"),
             Self::Jpeg { quality } => {
@@ -225,6 +238,10 @@ impl DiffAttack {
             Self::Noise { sigma, seed } => noise(x, sigma, seed),
             Self::Blur { sigma, kernel } => gaussian_blur(x, sigma, kernel),
             Self::Rotate { degrees } => rotate(x, degrees),
+            Self::Perspective {
+                x_degrees,
+                y_degrees,
+            } => perspective(x, x_degrees, y_degrees),
             Self::Scale { factor } => {
                 let f = f64::from(factor);
                 let (nh, nw) = (scaled_len(h, f), scaled_len(w, f));
@@ -373,6 +390,74 @@ fn rotate(x: Tensor<4>, degrees: f32) -> Tensor<4> {
             let sy = cy + dx * sin + dy * cos;
             grid.push(((2.0 * sx + 1.0) / w as f64 - 1.0) as f32);
             grid.push(((2.0 * sy + 1.0) / h as f64 - 1.0) as f32);
+        }
+    }
+    let grid = Tensor::<4>::from_data(TensorData::new(grid, [1, h, w, 2]), &x.device())
+        .expand([b, h, w, 2]);
+    let options = GridSampleOptions::new(InterpolateMode::Bilinear)
+        .with_padding_mode(GridSamplePaddingMode::Zeros)
+        .with_align_corners(false);
+    x.grid_sample_2d(grid, options)
+}
+
+/// Source position (pixels) of output pixel centre `(u, v)` under [`DiffAttack::Perspective`]:
+/// the ray through `(u, v)` meets the picture plane, tilted by `R = R_y(y°)·R_x(x°)` about its
+/// centre at depth 1, at `P`; the picture coordinates of `P` are `Rᵀ(P − (0, 0, 1))`.
+/// `None` where the ray misses the plane (behind the camera).
+pub fn perspective_source(
+    u: f64,
+    v: f64,
+    size: (usize, usize),
+    x_degrees: f64,
+    y_degrees: f64,
+) -> Option<(f64, f64)> {
+    let (h, w) = size;
+    let (cx, cy) = (w as f64 / 2.0, h as f64 / 2.0);
+    let f = w as f64;
+    let (sx, cxr) = x_degrees.to_radians().sin_cos();
+    let (sy, cyr) = y_degrees.to_radians().sin_cos();
+    // R = R_y · R_x (columns are the picture's axes in camera space).
+    let r = [
+        [cyr, sy * sx, sy * cxr],
+        [0.0, cxr, -sx],
+        [-sy, cyr * sx, cyr * cxr],
+    ];
+    let ray = [(u - cx) / f, (v - cy) / f, 1.0];
+    let n = [r[0][2], r[1][2], r[2][2]];
+    let denom = n[0] * ray[0] + n[1] * ray[1] + n[2] * ray[2];
+    if denom.abs() < 1e-9 {
+        return None;
+    }
+    let t = n[2] / denom;
+    if t <= 0.0 {
+        return None;
+    }
+    let p = [t * ray[0], t * ray[1], t * ray[2] - 1.0];
+    let qx = r[0][0] * p[0] + r[1][0] * p[1] + r[2][0] * p[2];
+    let qy = r[0][1] * p[0] + r[1][1] * p[1] + r[2][1] * p[2];
+    Some((cx + f * qx, cy + f * qy))
+}
+
+fn perspective(x: Tensor<4>, x_degrees: f32, y_degrees: f32) -> Tensor<4> {
+    if x_degrees == 0.0 && y_degrees == 0.0 {
+        return x;
+    }
+    let [b, _, h, w] = x.dims();
+    let mut grid = Vec::with_capacity(h * w * 2);
+    for y in 0..h {
+        for xx in 0..w {
+            let (u, v) = (xx as f64 + 0.5, y as f64 + 0.5);
+            let (sx, sy) = perspective_source(
+                u,
+                v,
+                (h, w),
+                f64::from(x_degrees),
+                f64::from(y_degrees),
+            )
+            .unwrap_or((-1e6, -1e6));
+            // Pixel position (centres at +0.5) → [−1, 1] without corner alignment.
+            grid.push((2.0 * sx / w as f64 - 1.0) as f32);
+            grid.push((2.0 * sy / h as f64 - 1.0) as f32);
         }
     }
     let grid = Tensor::<4>::from_data(TensorData::new(grid, [1, h, w, 2]), &x.device())
@@ -600,6 +685,8 @@ pub enum AttackFamily {
     Blur { sigma: (f32, f32), kernel: u32 },
     /// Rotation by an angle in ±`max_degrees`.
     Rotate { max_degrees: f32 },
+    /// Perspective tilt, each axis's angle in ±`max_degrees`.
+    Perspective { max_degrees: f32 },
     /// Resize by a per-side factor in `factor`.
     Scale { factor: (f32, f32) },
     /// Centre crop keeping an area fraction in `keep`.
@@ -628,6 +715,10 @@ impl AttackFamily {
             },
             Self::Rotate { max_degrees } => DiffAttack::Rotate {
                 degrees: r(rng, (-max_degrees, max_degrees)),
+            },
+            Self::Perspective { max_degrees } => DiffAttack::Perspective {
+                x_degrees: r(rng, (-max_degrees, max_degrees)),
+                y_degrees: r(rng, (-max_degrees, max_degrees)),
             },
             Self::Scale { factor } => DiffAttack::Scale {
                 factor: r(rng, factor),
@@ -872,6 +963,52 @@ mod tests {
         let y = to_vec(DiffAttack::Rotate { degrees: 90.0 }.apply(x).unwrap());
         assert!((y[8 + 2] - 1.0).abs() < 1e-5, "{}", y[8 + 2]);
         assert!((y.iter().sum::<f32>() - 3.0).abs() < 1e-4);
+    }
+
+    #[test]
+    fn perspective_is_the_tilted_picture_seen_through_a_pinhole() {
+        let (h, w) = (64usize, 64usize);
+        let f = w as f64;
+        // A picture point (X, 0) of a plane tilted by θ about the vertical axis sits at
+        // (X cos θ, 0, 1 − X sin θ) in camera space and projects to u = cx + f·X cos θ / (1 − X sin θ).
+        for theta in [-30.0f64, -10.0, 20.0] {
+            let (s, c) = theta.to_radians().sin_cos();
+            for xp in [-0.3f64, -0.1, 0.2, 0.4] {
+                let u = 32.0 + f * xp * c / (1.0 - xp * s);
+                let (sx, sy) = perspective_source(u, 32.0, (h, w), 0.0, theta).unwrap();
+                assert!((sx - (32.0 + f * xp)).abs() < 1e-9, "θ {theta} X {xp}: {sx}");
+                assert!((sy - 32.0).abs() < 1e-9);
+            }
+        }
+        // The centre stays; no tilt is the identity; the result keeps its size and is finite.
+        let (sx, sy) = perspective_source(32.0, 32.0, (h, w), 25.0, -15.0).unwrap();
+        assert!((sx - 32.0).abs() < 1e-9 && (sy - 32.0).abs() < 1e-9);
+        let x = smooth(2, h, w);
+        let same = DiffAttack::Perspective {
+            x_degrees: 0.0,
+            y_degrees: 0.0,
+        }
+        .apply(x.clone())
+        .unwrap();
+        assert_eq!(to_vec(same), to_vec(x.clone()));
+        let tilted = DiffAttack::Perspective {
+            x_degrees: 20.0,
+            y_degrees: -25.0,
+        }
+        .apply(x.clone())
+        .unwrap();
+        assert_eq!(tilted.dims(), [2, 3, h, w]);
+        let v = to_vec(tilted);
+        assert!(v.iter().all(|v| v.is_finite()));
+        assert_ne!(v, to_vec(x));
+        assert!(
+            DiffAttack::Perspective {
+                x_degrees: 85.0,
+                y_degrees: 0.0
+            }
+            .validate()
+            .is_err()
+        );
     }
 
     #[test]
