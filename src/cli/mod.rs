@@ -16,6 +16,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
 
 mod embed;
+mod probe;
 mod serve;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -53,6 +54,11 @@ enum Command {
         #[command(flatten)]
         limits: LimitArgs,
     },
+    /// Benchmarks that judge the watermark (docs/RESULTS.md).
+    Bench {
+        #[command(subcommand)]
+        command: probe::BenchCommand,
+    },
     /// Train or evaluate the watermark encoder/decoder.
     Decoder {
         #[command(subcommand)]
@@ -87,6 +93,13 @@ enum DecoderCommand {
     /// Re-decide the logit map (whitening / centering) of trained weights and re-run the
     /// held-out evaluation; writes the weights with the new sidecar to --out (JSON on stdout).
     Calibrate(CalibrateArgs),
+    /// Write random messages into held-out images by optimisation through the frozen decoder
+    /// at fixed PSNR bounds (as the 3D finetuning does) and decode them under the real attacks,
+    /// perspective tilts and downscales; JSON on stdout.
+    Probe(Box<probe::ProbeArgs>),
+    /// Train a decoder with the optimiser as its encoder (no encoder network; GroupNorm;
+    /// unmarked logits pulled to 0); resumable; ends with the probe on held-out images.
+    TrainOpt(Box<probe::TrainOptArgs>),
 }
 
 #[derive(Args, Debug)]
@@ -345,6 +358,10 @@ pub(crate) struct ViewArgs {
     /// Orbit: vertical field of view in degrees.
     #[arg(long, default_value_t = 45.0)]
     fov: f32,
+    /// Orbit: azimuth of the first view in degrees (another offset gives views between an
+    /// orbit's views).
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    azimuth_offset: f32,
 }
 
 impl ViewArgs {
@@ -363,6 +380,7 @@ impl ViewArgs {
                     height: self.height.unwrap_or(800),
                     fov_y_deg: self.fov,
                     up: self.up,
+                    azimuth_offset_deg: self.azimuth_offset,
                     ..OrbitOptions::default()
                 };
                 if let Some(e) = &self.elevations {
@@ -426,6 +444,13 @@ fn run(cli: Cli) -> Result<()> {
         Command::Decoder {
             command: DecoderCommand::Calibrate(args),
         } => calibrate_cmd(&args),
+        Command::Decoder {
+            command: DecoderCommand::Probe(args),
+        } => probe::probe_cmd(&args),
+        Command::Decoder {
+            command: DecoderCommand::TrainOpt(args),
+        } => probe::train_opt_cmd(&args),
+        Command::Bench { command } => probe::bench_cmd(&command),
         Command::Decode(args) => decode_cmd(&args),
         Command::Embed(args) => embed::embed_cmd(&args),
         Command::Verify(args) => embed::verify_cmd(&args),

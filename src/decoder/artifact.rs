@@ -31,7 +31,7 @@ use serde::{Deserialize, Serialize};
 
 use super::encoder::Encoder;
 use super::eval::EvalReport;
-use super::model::{HiddenDecoder, HiddenDecoderConfig, Whitening};
+use super::model::{HiddenDecoder, HiddenDecoderConfig, Norm, Whitening};
 use super::train::{EncoderKind, LogEntry, TrainConfig};
 
 /// Sidecar format tag.
@@ -93,6 +93,23 @@ pub struct DecoderArch {
     pub channels: usize,
     pub depth: usize,
     pub dwt_levels: usize,
+    /// Block normalisation (absent in sidecars before December 2026: BatchNorm).
+    #[serde(default)]
+    pub norm: Norm,
+    /// Convolution kernel (absent before December 2026: 3).
+    #[serde(default = "three")]
+    pub kernel: usize,
+    /// Gain on the input band (absent before December 2026: 1).
+    #[serde(default = "unit")]
+    pub input_gain: f64,
+}
+
+fn three() -> usize {
+    3
+}
+
+fn unit() -> f64 {
+    1.0
 }
 
 /// Encoder architecture in the sidecar.
@@ -255,6 +272,13 @@ pub struct Sidecar {
     pub whitening: Option<Whitening>,
     pub train_config: Option<TrainConfig>,
     pub record: Option<TrainingRecord>,
+    /// The configuration of an optimiser-as-encoder run (`decoder train-opt`), which has no
+    /// encoder and no `train_config`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub opt_train_config: Option<super::optrain::OptTrainConfig>,
+    /// The decoder-agnostic probe on held-out images (`decoder probe`), when it was run.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub probe: Option<super::probe::ProbeReport>,
 }
 
 impl Sidecar {
@@ -268,6 +292,9 @@ impl Sidecar {
                 channels: d.channels,
                 depth: d.depth,
                 dwt_levels: d.dwt_levels,
+                norm: d.norm,
+                kernel: d.kernel,
+                input_gain: d.input_gain,
             },
             encoder: Some(EncoderArch {
                 kind: config.encoder,
@@ -280,6 +307,8 @@ impl Sidecar {
             whitening,
             train_config: Some(config.clone()),
             record: None,
+            opt_train_config: None,
+            probe: None,
         }
     }
 
@@ -288,6 +317,9 @@ impl Sidecar {
             .with_channels(self.decoder.channels)
             .with_depth(self.decoder.depth)
             .with_dwt_levels(self.decoder.dwt_levels)
+            .with_norm(self.decoder.norm)
+            .with_kernel(self.decoder.kernel)
+            .with_input_gain(self.decoder.input_gain)
     }
 
     fn encoder_config(&self) -> Option<TrainConfig> {

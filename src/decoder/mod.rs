@@ -21,6 +21,11 @@
 //!   (`splatmark decoder train`), resumable checkpoints, whitening decision, final artifact.
 //! - [`eval`](mod@eval): held-out evaluation under the real attacks (`splatmark decoder eval`)
 //!   and decoding of images with logit averaging (`splatmark decode`).
+//! - [`probe`](mod@probe): the decoder-agnostic probe — messages written by optimisation
+//!   through the frozen decoder at a PSNR bound (what the 3D finetuning does), decoded under the
+//!   real attacks, perspective tilts and downscales (`splatmark decoder probe`).
+//! - [`optrain`](mod@optrain): decoder training with that optimiser as the encoder
+//!   (`splatmark decoder train-opt`), GroupNorm decoder, unmarked logits pulled to 0.
 //! - [`artifact`]: the artifact files (decoder + encoder burnpacks, JSON sidecar) and the
 //!   weights shipped in the binary (`weights/decoder-{32,48,64}.*`).
 //!
@@ -37,13 +42,15 @@ pub mod dwt;
 pub mod encoder;
 pub mod eval;
 pub mod model;
+pub mod optrain;
+pub mod probe;
 pub mod train;
 
 pub use dwt::{Dwt, dwt, haar_level, idwt, inverse_haar_level, ll_band, ll_size, padded_size};
 pub use model::{
     BATCH_NORM_EPS, ConvBnRelu, HiddenDecoder, HiddenDecoderConfig, HiddenEncoder,
-    HiddenEncoderConfig, WHITENING_EIGEN_FLOOR, Whitening, WhiteningError, decoder_input,
-    symmetric_eigen,
+    HiddenEncoderConfig, Norm, WHITENING_EIGEN_FLOOR, Whitening, WhiteningError, decoder_input,
+    group_count, symmetric_eigen,
 };
 
 pub use artifact::{Sidecar, WatermarkModel, WeightsError};

@@ -40,7 +40,10 @@ use std::path::Path;
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
-use burn::nn::{BatchNorm, BatchNormConfig, Linear, LinearConfig, PaddingConfig2d, Relu};
+use burn::nn::{
+    BatchNorm, BatchNormConfig, Gelu, GroupNorm, GroupNormConfig, Linear, LinearConfig,
+    PaddingConfig2d, Relu,
+};
 use burn::store::RecordError;
 use burn::tensor::module::adaptive_avg_pool2d;
 use burn::tensor::{Device, Tensor, TensorData};
@@ -59,31 +62,101 @@ pub fn decoder_input(image: Tensor<4>, levels: usize) -> Tensor<4> {
     ll_band(image, levels).mul_scalar(scale).sub_scalar(1.0)
 }
 
-/// Conv 3 × 3 (stride 1, padding 1) → BatchNorm → ReLU: HiDDeN's building block.
+/// How the decoder's blocks normalise and activate.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Norm {
+    /// BatchNorm + ReLU (HiDDeN, Stable Signature): batch statistics in training, running
+    /// statistics at inference — the two paths can diverge (docs/DECODER.md, 32-bit run 2).
+    #[default]
+    Batch,
+    /// GroupNorm (8 groups, or fewer when the channels do not divide) + GELU (VideoSeal's
+    /// HiDDeN extractor): per-image statistics, the same computation in training and inference.
+    Group,
+    /// No normalisation, GELU: with `kernel` = 1 every block is a per-pixel map, so the decoder
+    /// is a function of the colours of the LL band pooled over the image — invariant to where
+    /// the colours are (rotation, perspective, shifts), which is what views of a 3D asset
+    /// share.
+    #[serde(rename = "none")]
+    Off,
+}
+
+/// Groups of the GroupNorm of a block with `channels` channels: 8, or the largest divisor
+/// of `channels` below it.
+pub fn group_count(channels: usize) -> usize {
+    (1..=8.min(channels))
+        .rev()
+        .find(|g| channels % g == 0)
+        .unwrap_or(1)
+}
+
+/// Conv 3 × 3 (stride 1, padding 1) → BatchNorm → ReLU (HiDDeN's building block), or
+/// → GroupNorm → GELU ([`Norm::Group`]).
 #[derive(Module, Debug)]
 pub struct ConvBnRelu {
     conv: Conv2d,
-    bn: BatchNorm,
+    /// Present for [`Norm::Batch`] (the record keeps HiDDeN's `bn` names).
+    bn: Option<BatchNorm>,
+    /// Present for [`Norm::Group`].
+    gn: Option<GroupNorm>,
     relu: Relu,
+    gelu: Gelu,
 }
 
 impl ConvBnRelu {
-    /// A block mapping `channels_in` to `channels_out` channels.
+    /// A BatchNorm + ReLU block mapping `channels_in` to `channels_out` channels.
     pub fn new(channels_in: usize, channels_out: usize, device: &Device) -> Self {
+        Self::with_norm(channels_in, channels_out, Norm::Batch, device)
+    }
+
+    /// A block with the given normalisation.
+    pub fn with_norm(channels_in: usize, channels_out: usize, norm: Norm, device: &Device) -> Self {
+        Self::with_kernel(channels_in, channels_out, norm, 3, device)
+    }
+
+    /// A block with the given normalisation and a `kernel` × `kernel` convolution (odd).
+    pub fn with_kernel(
+        channels_in: usize,
+        channels_out: usize,
+        norm: Norm,
+        kernel: usize,
+        device: &Device,
+    ) -> Self {
+        let (bn, gn) = match norm {
+            Norm::Batch => (
+                Some(
+                    BatchNormConfig::new(channels_out)
+                        .with_epsilon(BATCH_NORM_EPS)
+                        .init(device),
+                ),
+                None,
+            ),
+            Norm::Group => (
+                None,
+                Some(GroupNormConfig::new(group_count(channels_out), channels_out).init(device)),
+            ),
+            Norm::Off => (None, None),
+        };
+        let pad = kernel / 2;
         Self {
-            conv: Conv2dConfig::new([channels_in, channels_out], [3, 3])
-                .with_padding(PaddingConfig2d::Explicit(1, 1, 1, 1))
+            conv: Conv2dConfig::new([channels_in, channels_out], [kernel, kernel])
+                .with_padding(PaddingConfig2d::Explicit(pad, pad, pad, pad))
                 .init(device),
-            bn: BatchNormConfig::new(channels_out)
-                .with_epsilon(BATCH_NORM_EPS)
-                .init(device),
+            bn,
+            gn,
             relu: Relu::new(),
+            gelu: Gelu::new(),
         }
     }
 
     /// `[B, C_in, H, W]` → `[B, C_out, H, W]`.
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        self.relu.forward(self.bn.forward(self.conv.forward(x)))
+        let x = self.conv.forward(x);
+        match (&self.bn, &self.gn) {
+            (Some(bn), _) => self.relu.forward(bn.forward(x)),
+            (None, Some(gn)) => self.gelu.forward(gn.forward(x)),
+            (None, None) => self.gelu.forward(x),
+        }
     }
 }
 
@@ -101,6 +174,16 @@ pub struct HiddenDecoderConfig {
     /// Levels of the Haar DWT whose LL band the decoder reads.
     #[config(default = 2)]
     pub dwt_levels: usize,
+    /// Normalisation of every block.
+    #[config(default = "Norm::Batch")]
+    pub norm: Norm,
+    /// Convolution kernel side (3 = HiDDeN; 1 = per-pixel, see [`Norm::None`]).
+    #[config(default = 3)]
+    pub kernel: usize,
+    /// The input band is multiplied by this before the first block (a steeper function of the
+    /// colours for per-pixel decoders).
+    #[config(default = 1.0)]
+    pub input_gain: f64,
 }
 
 impl HiddenDecoderConfig {
@@ -115,16 +198,30 @@ impl HiddenDecoderConfig {
             "bits and channels must be positive"
         );
         let mut layers = Vec::with_capacity(self.depth + 2);
-        layers.push(ConvBnRelu::new(3, self.channels, device));
+        let k = self.kernel.max(1) | 1;
+        layers.push(ConvBnRelu::with_kernel(3, self.channels, self.norm, k, device));
         for _ in 0..self.depth {
-            layers.push(ConvBnRelu::new(self.channels, self.channels, device));
+            layers.push(ConvBnRelu::with_kernel(
+                self.channels,
+                self.channels,
+                self.norm,
+                k,
+                device,
+            ));
         }
-        layers.push(ConvBnRelu::new(self.channels, self.bits, device));
+        layers.push(ConvBnRelu::with_kernel(
+            self.channels,
+            self.bits,
+            self.norm,
+            k,
+            device,
+        ));
         HiddenDecoder {
             layers,
             linear: LinearConfig::new(self.bits, self.bits).init(device),
             bits: self.bits,
             dwt_levels: self.dwt_levels,
+            input_gain: self.input_gain,
         }
     }
 }
@@ -136,6 +233,7 @@ pub struct HiddenDecoder {
     linear: Linear,
     bits: usize,
     dwt_levels: usize,
+    input_gain: f64,
 }
 
 impl HiddenDecoder {
@@ -164,7 +262,11 @@ impl HiddenDecoder {
 
     /// Logits `[B, L]` of an already prepared input band `[B, 3, h, w]` ([`decoder_input`]).
     pub fn forward_band(&self, band: Tensor<4>) -> Tensor<2> {
-        let mut x = band;
+        let mut x = if self.input_gain == 1.0 {
+            band
+        } else {
+            band.mul_scalar(self.input_gain)
+        };
         for layer in &self.layers {
             x = layer.forward(x);
         }

@@ -1,0 +1,364 @@
+//! `splatmark decoder probe` and `splatmark decoder train-opt` (see `decoder::probe` and
+//! `decoder::optrain`).
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result};
+use clap::{Args, ValueEnum};
+use image::RgbImage;
+
+use crate::decoder::WatermarkModel;
+use crate::decoder::data::{ImageSet, Split};
+use crate::decoder::model::Norm;
+use crate::decoder::optrain::{self, OptRunOptions, OptTrainConfig};
+use crate::decoder::probe::{ProbeOptions, probe};
+use crate::decoder::train::DeviceChoice;
+
+/// Which images of a folder.
+#[derive(Debug, Clone, Copy, ValueEnum)]
+pub enum SplitArg {
+    /// The held-out split (FNV-1a of the relative path mod 10 == 0).
+    HeldOut,
+    /// Every image (e.g. a folder of renders of views no training used).
+    All,
+}
+
+#[derive(Args, Debug)]
+pub struct ProbeArgs {
+    /// Image folders (each: .png/.jpg, recursive). Repeatable.
+    #[arg(long, required = true)]
+    images: Vec<PathBuf>,
+    /// Which images of each folder.
+    #[arg(long, value_enum, default_value = "held-out")]
+    split: SplitArg,
+    /// At most this many images per folder (in name order).
+    #[arg(long)]
+    limit: Option<usize>,
+    /// Short side the images are resized to, then centre-cropped square.
+    #[arg(long, default_value_t = 256)]
+    size: u32,
+    /// Message length.
+    #[arg(long)]
+    bits: usize,
+    /// Decoder weights (.bpk with its .json sidecar); default: the shipped weights.
+    #[arg(long)]
+    weights: Option<PathBuf>,
+    /// PSNR bounds, comma separated.
+    #[arg(long, value_delimiter = ',', default_value = "36,38,40")]
+    psnr: Vec<f64>,
+    /// Gradient steps per write.
+    #[arg(long, default_value_t = 60)]
+    iterations: usize,
+    /// Random messages per image.
+    #[arg(long, default_value_t = 2)]
+    repeats: usize,
+    /// Probability that a write step is attacked (EOT).
+    #[arg(long, default_value_t = 0.8)]
+    attack_prob: f64,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Also write the JSON report here.
+    #[arg(long)]
+    out: Option<PathBuf>,
+}
+
+/// Square `size`² images of `dirs` (the chosen split, at most `limit` per folder).
+pub fn probe_images(
+    dirs: &[PathBuf],
+    split: SplitArg,
+    limit: Option<usize>,
+    size: u32,
+) -> Result<Vec<RgbImage>> {
+    let mut out = Vec::new();
+    for dir in dirs {
+        let split = match split {
+            SplitArg::HeldOut => Split::HeldOut,
+            SplitArg::All => Split::All,
+        };
+        let set = ImageSet::load(dir, split)
+            .with_context(|| format!("cannot load images from {}", dir.display()))?;
+        out.extend(
+            set.images
+                .iter()
+                .take(limit.unwrap_or(usize::MAX))
+                .map(|img| img.square_rgb8(size)),
+        );
+    }
+    Ok(out)
+}
+
+pub fn probe_cmd(a: &ProbeArgs) -> Result<()> {
+    let device = DeviceChoice::Flex.device().autodiff();
+    let model = WatermarkModel::resolve(a.weights.as_deref(), a.bits, &device)?;
+    let images = probe_images(&a.images, a.split, a.limit, a.size)?;
+    let mut opts = ProbeOptions {
+        psnrs: a.psnr.clone(),
+        repeats: a.repeats,
+        seed: a.seed,
+        ..ProbeOptions::default()
+    };
+    opts.embed.iterations = a.iterations;
+    opts.embed.attack_prob = a.attack_prob;
+    eprintln!(
+        "probing {} bits on {} images ({}²) at {:?} dB, {} write steps…",
+        model.bits(),
+        images.len(),
+        a.size,
+        opts.psnrs,
+        opts.embed.iterations
+    );
+    let report = probe(&model, &images, &opts, &device)?;
+    let json = serde_json::to_string_pretty(&report)?;
+    if let Some(out) = &a.out {
+        std::fs::write(out, &json).with_context(|| format!("cannot write {}", out.display()))?;
+    }
+    println!("{json}");
+    Ok(())
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+pub enum NormArg {
+    Batch,
+    Group,
+    None,
+}
+
+#[derive(Args, Debug)]
+pub struct TrainOptArgs {
+    /// Training images (.png/.jpg, recursive); the held-out split is left out of training.
+    #[arg(long)]
+    images: PathBuf,
+    #[arg(long)]
+    bits: usize,
+    /// Output decoder weights; checkpoints go to <OUT>.ckpt/.
+    #[arg(long)]
+    out: PathBuf,
+    /// Continue from the newest checkpoint (its settings; --steps may extend).
+    #[arg(long)]
+    resume: bool,
+    /// Start from a JSON `OptTrainConfig`.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Folders whose held-out images the final probe uses (default: --images).
+    #[arg(long)]
+    probe_images: Vec<PathBuf>,
+    /// Skip the final probe.
+    #[arg(long)]
+    no_final_probe: bool,
+    #[arg(long)]
+    steps: Option<usize>,
+    #[arg(long)]
+    batch_size: Option<usize>,
+    #[arg(long)]
+    unmarked: Option<usize>,
+    #[arg(long)]
+    crop: Option<usize>,
+    #[arg(long)]
+    lr: Option<f64>,
+    #[arg(long)]
+    psnr_start_db: Option<f64>,
+    #[arg(long)]
+    psnr_end_db: Option<f64>,
+    #[arg(long)]
+    psnr_ramp_steps: Option<usize>,
+    #[arg(long)]
+    inner_steps: Option<usize>,
+    #[arg(long)]
+    attack_warmup: Option<usize>,
+    #[arg(long)]
+    attack_ramp: Option<usize>,
+    #[arg(long)]
+    attack_prob_max: Option<f64>,
+    #[arg(long)]
+    unmarked_weight: Option<f64>,
+    #[arg(long)]
+    decoder_channels: Option<usize>,
+    #[arg(long)]
+    decoder_depth: Option<usize>,
+    #[arg(long, value_enum)]
+    norm: Option<NormArg>,
+    /// Decoder convolution kernel (3; 1 = per-pixel).
+    #[arg(long)]
+    kernel: Option<usize>,
+    /// Gain on the decoder's input band.
+    #[arg(long)]
+    input_gain: Option<f64>,
+    #[arg(long)]
+    seed: Option<u64>,
+    #[arg(long)]
+    checkpoint_every: Option<usize>,
+    #[arg(long)]
+    keep_checkpoints: Option<usize>,
+    #[arg(long)]
+    log_every: Option<usize>,
+}
+
+fn read_config(p: &Path) -> Result<OptTrainConfig> {
+    let text = std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?;
+    serde_json::from_slice(&text).with_context(|| format!("invalid config {}", p.display()))
+}
+
+pub fn train_opt_cmd(a: &TrainOptArgs) -> Result<()> {
+    let mut c = match &a.config {
+        Some(p) => read_config(p)?,
+        None => OptTrainConfig::default(),
+    };
+    c.bits = a.bits;
+    macro_rules! set {
+        ($($field:ident),*) => {$(
+            if let Some(v) = a.$field {
+                c.$field = v;
+            }
+        )*};
+    }
+    set!(
+        steps,
+        batch_size,
+        unmarked,
+        crop,
+        lr,
+        psnr_start_db,
+        psnr_end_db,
+        psnr_ramp_steps,
+        inner_steps,
+        attack_warmup,
+        attack_ramp,
+        attack_prob_max,
+        unmarked_weight,
+        decoder_channels,
+        decoder_depth,
+        kernel,
+        input_gain,
+        seed,
+        checkpoint_every,
+        keep_checkpoints,
+        log_every
+    );
+    if let Some(n) = a.norm {
+        c.norm = match n {
+            NormArg::Batch => Norm::Batch,
+            NormArg::Group => Norm::Group,
+            NormArg::None => Norm::Off,
+        };
+    }
+    if a.no_final_probe {
+        c.final_probe = None;
+    }
+    let train = ImageSet::load(&a.images, Split::Train)?;
+    let probe_dirs = if a.probe_images.is_empty() {
+        vec![a.images.clone()]
+    } else {
+        a.probe_images.clone()
+    };
+    let probe_images = if c.final_probe.is_some() {
+        probe_images(&probe_dirs, SplitArg::HeldOut, Some(16), 256)?
+    } else {
+        Vec::new()
+    };
+    eprintln!(
+        "training a {}-bit decoder with the optimiser as encoder on {} images…",
+        c.bits,
+        train.len()
+    );
+    let opts = OptRunOptions {
+        out: &a.out,
+        resume: a.resume,
+        probe_images,
+        command: Some(super::command_line()),
+        data: Some(a.images.display().to_string()),
+    };
+    let report = optrain::run(c, train, opts, &mut std::io::stderr())?;
+    if let Some(r) = report {
+        println!("{}", serde_json::to_string_pretty(&r)?);
+    }
+    Ok(())
+}
+
+#[derive(clap::Subcommand, Debug)]
+pub enum BenchCommand {
+    /// Embed with the defaults a user gets and evaluate on views the finetuning never saw,
+    /// against the targets (docs/RESULTS.md). JSON on stdout (and --out), markdown
+    /// with --markdown.
+    Quality(QualityArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct QualityArgs {
+    /// The CI variant: donut, 32 bits, 128² renders, 8 training and 4 unseen views.
+    #[arg(long)]
+    quick: bool,
+    /// Folder holding donut/, plant/ and udon/.
+    #[arg(long, default_value = "../shared/data/scenes")]
+    scenes: PathBuf,
+    /// Only these scenes (comma separated).
+    #[arg(long, value_delimiter = ',')]
+    only: Option<Vec<String>>,
+    /// Message lengths (comma separated).
+    #[arg(long, value_delimiter = ',')]
+    bits: Option<Vec<usize>>,
+    /// Render side in pixels.
+    #[arg(long)]
+    size: Option<u32>,
+    /// Embedding options (JSON, as `embed --config`); default: the defaults a user gets.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Folder with decoder-{bits}.bpk artifacts (default: the shipped weights).
+    #[arg(long)]
+    weights_dir: Option<PathBuf>,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Write the JSON report here too.
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Write the markdown table here.
+    #[arg(long)]
+    markdown: Option<PathBuf>,
+}
+
+pub fn bench_cmd(c: &BenchCommand) -> Result<()> {
+    use crate::verify::bench::{self, QualityOptions};
+    let BenchCommand::Quality(a) = c;
+    let mut o = if a.quick {
+        QualityOptions::quick(a.scenes.clone())
+    } else {
+        QualityOptions::full(a.scenes.clone())
+    };
+    if let Some(s) = &a.only {
+        o.scenes = s.clone();
+    }
+    if let Some(b) = &a.bits {
+        o.bits = b.clone();
+    }
+    if let Some(s) = a.size {
+        o.size = s;
+    }
+    if let Some(p) = &a.config {
+        let bytes = std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?;
+        o.embed = serde_json::from_slice(&bytes)
+            .with_context(|| format!("{} is not valid embedding options", p.display()))?;
+    }
+    o.weights_dir = a.weights_dir.clone();
+    o.seed = a.seed;
+    let device = DeviceChoice::Flex.device().autodiff();
+    let report = bench::run(&o, &device, &mut |line| eprintln!("{line}"))?;
+    let json = serde_json::to_string_pretty(&report)?;
+    if let Some(out) = &a.out {
+        std::fs::write(out, &json).with_context(|| format!("cannot write {}", out.display()))?;
+    }
+    let md = bench::markdown(&report);
+    if let Some(p) = &a.markdown {
+        std::fs::write(p, &md).with_context(|| format!("cannot write {}", p.display()))?;
+    }
+    eprintln!("{md}");
+    eprintln!(
+        "bench quality: {} in {:.0} s",
+        if report.met {
+            "every target met"
+        } else {
+            "targets MISSED (see the table)"
+        },
+        report.wall_s
+    );
+    println!("{json}");
+    Ok(())
+}
