@@ -156,6 +156,9 @@ pub struct OrbitOptions {
     /// Camera distance relative to the one at which the robust bounding sphere just fills the
     /// narrower field of view (> 0; above 1 leaves a margin).
     pub distance_factor: f32,
+    /// Azimuth of view 0 in degrees (view `i` sits at `offset + 360° · i / count`): another
+    /// offset gives views between those of an orbit, e.g. views a finetuning never saw.
+    pub azimuth_offset_deg: f32,
 }
 
 impl OrbitOptions {
@@ -174,6 +177,7 @@ impl Default for OrbitOptions {
             up: UpAxis::default(),
             quantile: 0.02,
             distance_factor: 1.2,
+            azimuth_offset_deg: 0.0,
         }
     }
 }
@@ -220,6 +224,12 @@ impl OrbitOptions {
                 self.distance_factor
             ));
         }
+        if !self.azimuth_offset_deg.is_finite() {
+            return bad(format!(
+                "azimuth_offset_deg {} is not finite",
+                self.azimuth_offset_deg
+            ));
+        }
         Ok(())
     }
 }
@@ -264,7 +274,8 @@ pub fn orbit_cameras(g: &Gaussians, opts: &OrbitOptions) -> Result<Vec<Camera>, 
     let mut cams = Vec::with_capacity(opts.count);
     for i in 0..opts.count {
         let elevation = f64::from(opts.elevations_deg[i % n]).to_radians();
-        let azimuth = std::f64::consts::TAU * i as f64 / opts.count as f64;
+        let azimuth = std::f64::consts::TAU * i as f64 / opts.count as f64
+            + f64::from(opts.azimuth_offset_deg).to_radians();
         let dir =
             elevation.cos() * (azimuth.cos() * e1 + azimuth.sin() * e2) + elevation.sin() * up;
         let position = centre + distance * dir;
@@ -438,6 +449,34 @@ mod tests {
         let (centre, _) = robust_centre_and_corners(&g, 0.02);
         let ratio = far[5].center().distance(centre) / near[5].center().distance(centre);
         assert!((ratio - 2.0).abs() < 1e-4, "{ratio}");
+    }
+
+    #[test]
+    fn an_azimuth_offset_turns_the_orbit() {
+        let g = scene();
+        let one = |offset: f32| OrbitOptions {
+            count: 8,
+            elevations_deg: vec![15.0],
+            azimuth_offset_deg: offset,
+            ..Default::default()
+        };
+        let base = orbit_cameras(&g, &one(0.0)).expect("orbit");
+        // A whole step of 45° lands view i on view i + 1.
+        let turned = orbit_cameras(&g, &one(45.0)).expect("orbit");
+        for i in 0..7 {
+            let d = turned[i].center().distance(base[i + 1].center());
+            assert!(d < 1e-4, "view {i}: {d}");
+        }
+        // Half a step: views between those of the orbit, none coinciding.
+        let between = orbit_cameras(&g, &one(22.5)).expect("orbit");
+        for c in &between {
+            let nearest = base
+                .iter()
+                .map(|b| b.center().distance(c.center()))
+                .fold(f32::INFINITY, f32::min);
+            assert!(nearest > 1e-2, "{nearest}");
+        }
+        assert!(orbit_cameras(&g, &one(f32::NAN)).is_err());
     }
 
     #[test]

@@ -53,6 +53,8 @@ pub struct Row {
     /// p-value of the combined decision (one candidate message).
     pub p_value: f64,
     pub detected: bool,
+    /// Share of the views detected each on its own at the same false-positive rate.
+    pub detection_rate_per_view: f64,
 }
 
 /// The evaluation of one watermarked scene.
@@ -124,6 +126,11 @@ fn row(
         .collect();
     let decoded: Vec<bool> = mean.iter().map(|&z| z > 0.0).collect();
     let d = detect(&decoded, message, 1, fpr)?;
+    let mut alone = 0usize;
+    for z in &logits {
+        let bits: Vec<bool> = z.iter().map(|&v| v > 0.0).collect();
+        alone += usize::from(detect(&bits, message, 1, fpr)?.detected);
+    }
     debug_assert_eq!(d.matches, matches_from_logits(&mean, message));
     Ok(Row {
         name: name.into(),
@@ -132,6 +139,7 @@ fn row(
         bit_accuracy_combined: d.bit_accuracy,
         p_value: d.p_value,
         detected: d.detected,
+        detection_rate_per_view: alone as f64 / logits.len() as f64,
     })
 }
 

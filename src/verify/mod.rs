@@ -4,6 +4,7 @@
 //! [`stats`] holds the exact detection statistics (binomial p-values, thresholds for a target
 //! false-positive rate, multiple-testing correction across registered messages).
 
+pub mod bench;
 pub mod dispute;
 pub mod eval;
 pub mod message;

@@ -1,0 +1,437 @@
+//! The quality bench (`splatmark bench quality`): does the watermark that a user gets with the
+//! defaults reach views the finetuning never saw, at the paper's fidelity? (issue 12, the judge)
+//!
+//! For each scene of `../shared/data/scenes` and each message length:
+//!
+//! 1. **Training views as the CLI makes them**: `splatmark embed`'s defaults — `train_views`
+//!    orbit views (elevations −20°, 10°, 35°) at `size`², every `holdout_every`-th held out by
+//!    the CLI — or, for a scene with its own cameras (udon), every camera but every
+//!    `holdout_every_cameras`-th.
+//! 2. **Embedding with [`EmbedOptions::default`]** and a uniformly random payload (what the
+//!    service embeds: message ⊕ a random mask).
+//! 3. **Unseen views**: `eval_views` orbit views at other elevations (0°, 22°, 50°) and azimuths
+//!    offset by half a training step from every training azimuth (for udon: its held-out
+//!    cameras), evaluated by [`evaluate_scene`]: PSNR / SSIM against the original's renders,
+//!    bit accuracy clean, under the paper's image attacks (real 8-bit) and model attacks, the
+//!    per-view detection rate and the decision on logits averaged over the views at `fpr`, and
+//!    the unmarked scene's row (it must not be detected).
+//! 4. Each figure against the issue's target ([`targets`]); `met` says whether all are.
+//!
+//! [`markdown`] renders the runs as the table recorded in docs/RESULTS.md.
+
+use std::ops::ControlFlow;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use serde::Serialize;
+
+use crate::decoder::WatermarkModel;
+use crate::embed::pipeline::{EmbedOptions, embed, split_views};
+use crate::scene::camera::{read_cameras, resize_all};
+use crate::scene::format::read_scene;
+use crate::scene::orbit::{OrbitOptions, orbit_cameras};
+use crate::scene::{Camera, Gaussians, Limits};
+use crate::verify::eval::{EvalSettings, SceneEval, evaluate_scene};
+use crate::verify::message::random_message;
+
+/// A scene of the bench.
+#[derive(Clone, Debug, Serialize)]
+pub struct BenchScene {
+    pub name: String,
+    /// The scene file, relative to the scenes folder.
+    pub file: String,
+    /// Its own cameras (relative), if it has them.
+    pub cameras: Option<String>,
+}
+
+/// The shared scenes: donut and plant (orbit views), udon (its cameras).
+pub fn shared_scenes() -> Vec<BenchScene> {
+    vec![
+        BenchScene {
+            name: "donut".into(),
+            file: "donut/fused.ply".into(),
+            cameras: None,
+        },
+        BenchScene {
+            name: "plant".into(),
+            file: "plant/plant.splat".into(),
+            cameras: None,
+        },
+        BenchScene {
+            name: "udon".into(),
+            file: "udon/point_cloud.ply".into(),
+            cameras: Some("udon/cameras.json".into()),
+        },
+    ]
+}
+
+/// What the bench runs.
+#[derive(Clone, Debug, Serialize)]
+pub struct QualityOptions {
+    pub scenes_dir: PathBuf,
+    /// Names from [`shared_scenes`].
+    pub scenes: Vec<String>,
+    pub bits: Vec<usize>,
+    /// Render side (training and evaluation), pixels; the CLI's default is 800.
+    pub size: u32,
+    /// Orbit views the CLI trains on (its default 24) …
+    pub train_views: usize,
+    /// … of which it holds out every n-th (its default 8).
+    pub holdout_every: usize,
+    /// Cameras of a scene's own set held out for evaluation: every n-th.
+    pub holdout_every_cameras: usize,
+    /// Unseen orbit views.
+    pub eval_views: usize,
+    pub eval_elevations: Vec<f32>,
+    /// The embedding options (the defaults a user gets).
+    pub embed: EmbedOptions,
+    pub fpr: f64,
+    /// Seed of the payloads and attacks.
+    pub seed: u64,
+    /// Folder with `decoder-{bits}.bpk` artifacts; the shipped weights when absent.
+    pub weights_dir: Option<PathBuf>,
+}
+
+impl QualityOptions {
+    /// The full bench: every shared scene, 32/48/64 bits, the CLI's defaults.
+    pub fn full(scenes_dir: PathBuf) -> Self {
+        Self {
+            scenes_dir,
+            scenes: shared_scenes().into_iter().map(|s| s.name).collect(),
+            bits: vec![32, 48, 64],
+            size: 800,
+            train_views: 24,
+            holdout_every: 8,
+            holdout_every_cameras: 4,
+            eval_views: 12,
+            eval_elevations: vec![0.0, 22.0, 50.0],
+            embed: EmbedOptions::default(),
+            fpr: 1e-6,
+            seed: 0,
+            weights_dir: None,
+        }
+    }
+
+    /// The CI variant: donut, 32 bits, 128² renders, 8 training and 4 unseen views.
+    pub fn quick(scenes_dir: PathBuf) -> Self {
+        Self {
+            scenes: vec!["donut".into()],
+            bits: vec![32],
+            size: 128,
+            train_views: 8,
+            eval_views: 4,
+            ..Self::full(scenes_dir)
+        }
+    }
+}
+
+/// Why the bench could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum BenchError {
+    #[error("unknown bench scene {0:?} (known: donut, plant, udon)")]
+    UnknownScene(String),
+    #[error("{path}: {message}")]
+    Input { path: PathBuf, message: String },
+    #[error(transparent)]
+    Weights(#[from] crate::decoder::WeightsError),
+    #[error(transparent)]
+    Embed(#[from] crate::embed::pipeline::EmbedError),
+    #[error(transparent)]
+    Eval(#[from] crate::verify::eval::EvalError),
+    #[error(transparent)]
+    Scene(#[from] crate::scene::SceneError),
+}
+
+/// One figure against its target.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct TargetCheck {
+    pub name: String,
+    pub value: f64,
+    /// `value ≥ target` is met (for "unmarked_detected", 0 = not detected is met).
+    pub target: f64,
+    pub met: bool,
+}
+
+/// One scene at one message length.
+#[derive(Clone, Debug, Serialize)]
+pub struct QualityRun {
+    pub scene: String,
+    pub bits: usize,
+    pub gaussians: usize,
+    pub train_views: usize,
+    pub eval_views: usize,
+    pub carriers: usize,
+    pub compensators: usize,
+    pub embed_s: f64,
+    pub eval_s: f64,
+    pub eval: SceneEval,
+    pub targets: Vec<TargetCheck>,
+    pub met: bool,
+}
+
+/// The bench's report.
+#[derive(Clone, Debug, Serialize)]
+pub struct QualityReport {
+    pub options: QualityOptions,
+    pub runs: Vec<QualityRun>,
+    pub wall_s: f64,
+    /// Every target of every run met.
+    pub met: bool,
+}
+
+/// The issue's targets for `bits` (unseen views): (row or figure, minimum).
+pub fn targets(bits: usize) -> Vec<(&'static str, f64)> {
+    match bits {
+        32 => vec![
+            ("clean", 0.985),
+            ("psnr", 36.0),
+            ("ssim", 0.98),
+            ("noise", 0.912),
+            ("rotation", 0.962),
+            ("scaling", 0.951),
+            ("blur", 0.978),
+            ("crop", 0.959),
+            ("jpeg", 0.930),
+            ("combined", 0.913),
+            ("remove_20", 0.982),
+            ("clone_20", 0.975),
+            ("noise_0.1", 0.905),
+        ],
+        48 => vec![("clean", 0.943), ("psnr", 33.5)],
+        _ => vec![("clean", 0.917), ("psnr", 32.7)],
+    }
+}
+
+/// Checks `eval` against [`targets`], plus "the unmarked scene is not detected" and "the
+/// clean views are detected on averaged logits".
+pub fn check(eval: &SceneEval, bits: usize) -> Vec<TargetCheck> {
+    let mut out = Vec::new();
+    for (name, target) in targets(bits) {
+        let value = match name {
+            "psnr" => eval.psnr,
+            "ssim" => eval.ssim,
+            _ => eval
+                .rows
+                .iter()
+                .find(|r| r.name == name)
+                .map_or(f64::NAN, |r| r.bit_accuracy),
+        };
+        out.push(TargetCheck {
+            name: name.into(),
+            value,
+            target,
+            met: value >= target,
+        });
+    }
+    if let Some(r) = eval.rows.iter().find(|r| r.name == "clean") {
+        out.push(TargetCheck {
+            name: "clean_detected".into(),
+            value: f64::from(u8::from(r.detected)),
+            target: 1.0,
+            met: r.detected,
+        });
+    }
+    if let Some(r) = eval.rows.iter().find(|r| r.name == "unmarked") {
+        out.push(TargetCheck {
+            name: "unmarked_detected".into(),
+            value: f64::from(u8::from(r.detected)),
+            target: 0.0,
+            met: !r.detected,
+        });
+    }
+    out
+}
+
+fn input_err(path: &Path, e: impl std::fmt::Display) -> BenchError {
+    BenchError::Input {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    }
+}
+
+/// Training and unseen cameras of `scene` (module docs).
+pub fn views(
+    scene: &BenchScene,
+    g: &Gaussians,
+    opts: &QualityOptions,
+) -> Result<(Vec<Camera>, Vec<Camera>), BenchError> {
+    if let Some(c) = &scene.cameras {
+        let path = opts.scenes_dir.join(c);
+        let cams = read_cameras(&path).map_err(|e| input_err(&path, e))?;
+        // The longer side at `size`, the aspect kept.
+        let wide = cams.first().is_some_and(|c| c.width >= c.height);
+        let cams = if wide {
+            resize_all(cams, Some(opts.size), None)
+        } else {
+            resize_all(cams, None, Some(opts.size))
+        };
+        let every = opts.holdout_every_cameras.max(2);
+        let (train, held) = split_views(&cams, every);
+        return Ok((train, held));
+    }
+    let train_orbit = OrbitOptions {
+        count: opts.train_views,
+        width: opts.size,
+        height: opts.size,
+        ..OrbitOptions::default()
+    };
+    let (train, _) = split_views(&orbit_cameras(g, &train_orbit)?, opts.holdout_every);
+    let step = 360.0 / opts.train_views.max(1) as f32;
+    let unseen = OrbitOptions {
+        count: opts.eval_views,
+        elevations_deg: opts.eval_elevations.clone(),
+        width: opts.size,
+        height: opts.size,
+        azimuth_offset_deg: 0.5 * step,
+        ..OrbitOptions::default()
+    };
+    Ok((train, orbit_cameras(g, &unseen)?))
+}
+
+/// Runs the bench; `log` gets a line per phase.
+pub fn run(
+    opts: &QualityOptions,
+    device: &burn::tensor::Device,
+    log: &mut dyn FnMut(&str),
+) -> Result<QualityReport, BenchError> {
+    let start = Instant::now();
+    let all = shared_scenes();
+    let mut runs = Vec::new();
+    for name in &opts.scenes {
+        let scene = all
+            .iter()
+            .find(|s| &s.name == name)
+            .ok_or_else(|| BenchError::UnknownScene(name.clone()))?;
+        let path = opts.scenes_dir.join(&scene.file);
+        let g = read_scene(&path, &Limits::default()).map_err(|e| input_err(&path, e))?;
+        let (train, unseen) = views(scene, &g, opts)?;
+        for &bits in &opts.bits {
+            let model = match &opts.weights_dir {
+                Some(d) => WatermarkModel::load(&d.join(format!("decoder-{bits}.bpk")), device)?,
+                None => WatermarkModel::shipped(bits, device)?,
+            };
+            let payload = random_message(bits);
+            log(&format!(
+                "{name}, {bits} bits: embedding over {} training views ({} Gaussians, {}²)…",
+                train.len(),
+                g.len(),
+                opts.size
+            ));
+            let t0 = Instant::now();
+            let mut last = 0;
+            let out = embed(&g, &train, &payload, &model, &opts.embed, |p| {
+                if p.total > 0 && p.step >= last + (p.total / 10).max(1) {
+                    last = p.step;
+                    if let Some(s) = p.log {
+                        log(&format!(
+                            "  step {}/{}: train bits {:.3} (EOT {:.3}), {:.1} dB",
+                            p.step, p.total, s.bit_acc_clean, s.bit_acc_eot, s.psnr
+                        ));
+                    }
+                }
+                ControlFlow::Continue(())
+            })?;
+            let embed_s = t0.elapsed().as_secs_f64();
+            log(&format!(
+                "  embedded in {embed_s:.1} s; evaluating on {} unseen views…",
+                unseen.len()
+            ));
+            let t1 = Instant::now();
+            let settings = EvalSettings {
+                render: opts.embed.render_options(),
+                fpr: opts.fpr,
+                seed: opts.seed,
+            };
+            let eval = evaluate_scene(&g, &out.scene, &unseen, &model, &payload, &settings)?;
+            let targets = check(&eval, bits);
+            let met = targets.iter().all(|t| t.met);
+            runs.push(QualityRun {
+                scene: name.clone(),
+                bits,
+                gaussians: g.len(),
+                train_views: train.len(),
+                eval_views: unseen.len(),
+                carriers: out.report.carriers,
+                compensators: out.report.compensators,
+                embed_s,
+                eval_s: t1.elapsed().as_secs_f64(),
+                eval,
+                targets,
+                met,
+            });
+        }
+    }
+    let met = runs.iter().all(|r| r.met);
+    Ok(QualityReport {
+        options: opts.clone(),
+        runs,
+        wall_s: start.elapsed().as_secs_f64(),
+        met,
+    })
+}
+
+/// The report as markdown tables (one row per scene × bits; accuracies in %).
+pub fn markdown(report: &QualityReport) -> String {
+    let cols = [
+        "clean", "noise", "rotation", "scaling", "blur_0.8", "crop", "jpeg", "combined",
+        "remove_20", "clone_20", "noise_0.1",
+    ];
+    let mut s = String::new();
+    s += "| scene | bits | views train / unseen | PSNR | SSIM |";
+    for c in cols {
+        s += &format!(" {c} |");
+    }
+    s += " clean detected per view | clean detected (avg logits) | unmarked detected | embed s | targets |\n";
+    s += "|---|---|---|---|---|";
+    for _ in cols {
+        s += "---|";
+    }
+    s += "---|---|---|---|---|\n";
+    for r in &report.runs {
+        let acc = |name: &str| {
+            r.eval
+                .rows
+                .iter()
+                .find(|x| x.name == name)
+                .map_or("–".to_string(), |x| format!("{:.1}", 100.0 * x.bit_accuracy))
+        };
+        let row = |name: &str| r.eval.rows.iter().find(|x| x.name == name);
+        s += &format!(
+            "| {} | {} | {} / {} | {:.2} | {:.3} |",
+            r.scene, r.bits, r.train_views, r.eval_views, r.eval.psnr, r.eval.ssim
+        );
+        for c in cols {
+            s += &format!(" {} |", acc(c));
+        }
+        let missed: Vec<&str> = r
+            .targets
+            .iter()
+            .filter(|t| !t.met)
+            .map(|t| t.name.as_str())
+            .collect();
+        s += &format!(
+            " {} | {} | {} | {:.0} | {} |\n",
+            row("clean").map_or("–".into(), |x| format!(
+                "{:.0} %",
+                100.0 * x.detection_rate_per_view
+            )),
+            row("clean").map_or("–".into(), |x| format!(
+                "{} (p {:.1e})",
+                if x.detected { "yes" } else { "no" },
+                x.p_value
+            )),
+            row("unmarked").map_or("–".into(), |x| if x.detected {
+                "YES".into()
+            } else {
+                "no".to_string()
+            }),
+            r.embed_s,
+            if missed.is_empty() {
+                "all met".to_string()
+            } else {
+                format!("missed: {}", missed.join(", "))
+            }
+        );
+    }
+    s
+}
