@@ -1009,3 +1009,199 @@ async fn cameras_uploaded_with_a_scene_are_validated_too() {
     assert_eq!(a["cameras_sha256"].as_str().unwrap().len(), 64);
     t.stop().await;
 }
+
+/// `n` Gaussians as a SuperSplat compressed PLY (one chunk of bounds, packed words from a fixed
+/// generator: every 32-bit pattern decodes to a valid Gaussian).
+fn compressed_ply_bytes(n: usize) -> Vec<u8> {
+    assert!((1..=256).contains(&n));
+    let mut h = String::from("ply\nformat binary_little_endian 1.0\nelement chunk 1\n");
+    for p in [
+        "min_x",
+        "min_y",
+        "min_z",
+        "max_x",
+        "max_y",
+        "max_z",
+        "min_scale_x",
+        "min_scale_y",
+        "min_scale_z",
+        "max_scale_x",
+        "max_scale_y",
+        "max_scale_z",
+    ] {
+        h += &format!("property float {p}\n");
+    }
+    h += &format!("element vertex {n}\n");
+    for p in [
+        "packed_position",
+        "packed_rotation",
+        "packed_scale",
+        "packed_color",
+    ] {
+        h += &format!("property uint {p}\n");
+    }
+    h += "end_header\n";
+    let mut out = h.into_bytes();
+    for v in [-1.0f32, -1.0, -1.0, 1.0, 1.0, 1.0, -5.0, -5.0, -5.0, -3.0, -3.0, -3.0] {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    let mut rng = splatmark::scene::synthetic::Rng::new(7);
+    for _ in 0..n * 4 {
+        out.extend_from_slice(&(rng.next_u64() as u32).to_le_bytes());
+    }
+    out
+}
+
+/// `n` Gaussians as an antimatter15 `.splat`.
+fn splat_bytes(n: usize) -> Vec<u8> {
+    let mut rng = splatmark::scene::synthetic::Rng::new(8);
+    let mut out = vec![];
+    for _ in 0..n {
+        for _ in 0..3 {
+            out.extend_from_slice(&rng.range(-1.0, 1.0).to_le_bytes());
+        }
+        for _ in 0..3 {
+            out.extend_from_slice(&rng.range(0.01, 0.05).to_le_bytes());
+        }
+        out.extend_from_slice(&[200, 100, 50, 180, 255, 128, 128, 128]);
+    }
+    out
+}
+
+/// `n` Gaussians as a Niantic `.spz` (version 2, gzip).
+fn spz_bytes(n: usize) -> Vec<u8> {
+    use std::io::Write;
+    let mut rng = splatmark::scene::synthetic::Rng::new(9);
+    let mut raw = b"NGSP".to_vec();
+    raw.extend_from_slice(&2u32.to_le_bytes());
+    raw.extend_from_slice(&(n as u32).to_le_bytes());
+    raw.extend_from_slice(&[0, 12, 0, 0]);
+    // positions (9), alphas (1), colours (3), scales (3), rotations (3) bytes per point.
+    for per_point in [9, 1, 3, 3, 3] {
+        raw.extend((0..n * per_point).map(|_| rng.next_u64() as u8));
+    }
+    let mut e = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
+    e.write_all(&raw).unwrap();
+    e.finish().unwrap()
+}
+
+#[tokio::test]
+async fn every_supported_scene_format_uploads_and_round_trips() {
+    let mut t = TestApp::start().await;
+    let k = t.keys().await;
+    for (name, bytes, format) in [
+        ("a.ply", ply_bytes(&object_scene(100, 1, 3)), "ply"),
+        ("b.compressed.ply", compressed_ply_bytes(100), "compressed_ply"),
+        ("c.splat", splat_bytes(100), "splat"),
+        ("d.spz", spz_bytes(100), "spz"),
+    ] {
+        let r = t.upload(&k.owner, name, bytes.clone()).await;
+        assert_eq!(r.status(), StatusCode::CREATED, "{name}: {}", r.text().await.unwrap());
+        let a: Value = r.json().await.unwrap();
+        assert_eq!(a["format"], format, "{name}: {a}");
+        assert_eq!(a["gaussians"], 100, "{name}: {a}");
+        let id = a["id"].as_str().unwrap();
+        // The metadata reads back, and the original comes back byte for byte.
+        let m: Value = t.get(&k.owner, &format!("/v1/assets/{id}")).await.json().await.unwrap();
+        assert_eq!(m["format"], format, "{name}: {m}");
+        let f = t.get(&k.owner, &format!("/v1/assets/{id}/file")).await;
+        assert_eq!(f.status(), StatusCode::OK);
+        assert!(f.bytes().await.unwrap() == bytes, "{name}: the download differs");
+    }
+    let audit: Value = t
+        .get(&k.auditor, "/v1/audit?action=asset.upload")
+        .await
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(audit["items"].as_array().unwrap().len(), 4);
+    t.stop().await;
+}
+
+#[tokio::test]
+async fn an_upload_whose_insert_fails_leaves_no_blob_behind() {
+    let mut t = TestApp::start().await;
+    let k = t.keys().await;
+    let kept = ply_bytes(&object_scene(100, 0, 4));
+    let r = t.upload(&k.owner, "kept.ply", kept.clone()).await;
+    assert_eq!(r.status(), StatusCode::CREATED);
+    let kept_id = r.json::<Value>().await.unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let committed = |t: &TestApp| -> Vec<PathBuf> {
+        let mut v: Vec<PathBuf> = stored_blobs(&t.data())
+            .into_iter()
+            .filter(|p| !p.to_string_lossy().contains("tmp"))
+            .collect();
+        v.sort();
+        v
+    };
+    let before = committed(&t);
+    assert_eq!(before.len(), 1, "{before:?}");
+
+    // The database refuses every new asset row (as a full disk or a broken file would).
+    let db = sqlx::sqlite::SqlitePoolOptions::new()
+        .max_connections(1)
+        .connect_with(
+            sqlx::sqlite::SqliteConnectOptions::new()
+                .filename(t.data().join("splatmark.db"))
+                .busy_timeout(Duration::from_secs(5)),
+        )
+        .await
+        .unwrap();
+    sqlx::query(
+        "CREATE TRIGGER refuse_assets BEFORE INSERT ON assets \
+         BEGIN SELECT RAISE(ABORT, 'refused by the test'); END",
+    )
+    .execute(&db)
+    .await
+    .unwrap();
+
+    // A new scene, with cameras: neither blob stays. The same bytes as a stored asset: that
+    // asset's blob stays.
+    let cams = json!([{
+        "id": 0, "img_name": "c0", "width": 96, "height": 96,
+        "position": [0.0, 0.0, -4.0],
+        "rotation": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+        "fx": 100.0, "fy": 100.0
+    }]);
+    let form = Form::new()
+        .part("scene", Part::bytes(splat_bytes(50)).file_name("new.splat"))
+        .part(
+            "cameras",
+            Part::bytes(serde_json::to_vec(&cams).unwrap()).file_name("cameras.json"),
+        );
+    let r = t
+        .client
+        .post(t.url("/v1/assets"))
+        .bearer_auth(&k.owner)
+        .multipart(form)
+        .send()
+        .await
+        .unwrap();
+    let p = assert_problem(r, StatusCode::INTERNAL_SERVER_ERROR).await;
+    assert!(!p["detail"].as_str().unwrap().contains("refused"), "{p}");
+    let r = t.upload(&k.owner, "again.ply", kept.clone()).await;
+    assert_problem(r, StatusCode::INTERNAL_SERVER_ERROR).await;
+    assert_eq!(committed(&t), before);
+
+    sqlx::query("DROP TRIGGER refuse_assets")
+        .execute(&db)
+        .await
+        .unwrap();
+    db.close().await;
+    let f = t.get(&k.owner, &format!("/v1/assets/{kept_id}/file")).await;
+    assert_eq!(f.status(), StatusCode::OK);
+    assert!(f.bytes().await.unwrap() == kept);
+    let audit: Value = t
+        .get(&k.auditor, "/v1/audit?action=asset.upload")
+        .await
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(audit["items"].as_array().unwrap().len(), 1);
+    let r = t.upload(&k.owner, "new.splat", splat_bytes(50)).await;
+    assert_eq!(r.status(), StatusCode::CREATED);
+    t.stop().await;
+}

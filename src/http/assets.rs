@@ -111,6 +111,16 @@ fn check(
     })
 }
 
+/// Removes the blobs of an upload whose asset row was not written (best effort: what fails here
+/// is logged, and the garbage collector removes it later).
+async fn discard(st: &AppState, pins: Vec<crate::store::PinnedBlob>) {
+    match st.store.discard_unreferenced(pins).await {
+        Ok(n) if n > 0 => tracing::info!(blobs = n, "removed the blobs of a rejected upload"),
+        Ok(_) => {}
+        Err(e) => tracing::warn!(error = %e, "could not remove the blobs of a rejected upload"),
+    }
+}
+
 /// `POST /v1/assets` — multipart fields `scene` (required) and `cameras` (optional).
 pub async fn upload(
     State(st): State<AppState>,
@@ -148,29 +158,39 @@ pub async fn upload(
     };
     let blobs = st.store.blobs().clone();
     let name = scene_name.clone();
-    let (checked, scene_blob, cams_blob) = tokio::task::spawn_blocking(move || {
+    let (checked, pins, committed) = tokio::task::spawn_blocking(move || {
         let checked = check(
             scene.path(),
             name.as_deref(),
             cameras.as_ref().map(|(t, _)| t.path()),
             &limits,
         )?;
-        // Only now does anything become permanent.
-        let s = blobs.commit(scene).map_err(ApiError::internal)?;
-        let c = match cameras {
-            Some((t, _)) => Some(blobs.commit(t).map_err(ApiError::internal)?),
-            None => None,
-        };
-        Ok::<_, ApiError>((checked, s, c))
+        // Only now does anything become permanent. The blobs stay pinned until their row is
+        // written, and are removed again if it is not.
+        let mut pins = Vec::new();
+        let committed = (|| {
+            pins.push(blobs.commit_pinned(scene)?);
+            if let Some((t, _)) = cameras {
+                pins.push(blobs.commit_pinned(t)?);
+            }
+            Ok::<_, std::io::Error>(())
+        })();
+        Ok::<_, ApiError>((checked, pins, committed))
     })
     .await
     .map_err(ApiError::internal)??;
+    if let Err(e) = committed {
+        discard(&st, pins).await;
+        return Err(ApiError::internal(e));
+    }
+    let scene_blob = pins[0].blob().clone();
+    let cams_blob = pins.get(1).map(|p| p.blob().clone());
     let size = scene_blob.size;
     let (n_cams, cams_format) = match checked.cameras {
         Some((n, f)) => (Some(n), Some(f)),
         None => (None, None),
     };
-    let asset = st
+    let inserted = st
         .store
         .insert_asset(
             NewAsset {
@@ -194,7 +214,15 @@ pub async fn upload(
                 details: json!({"bytes": size, "gaussians": checked.gaussians, "cameras": n_cams}),
             },
         )
-        .await?;
+        .await;
+    let asset = match inserted {
+        Ok(a) => a,
+        Err(e) => {
+            discard(&st, pins).await;
+            return Err(e.into());
+        }
+    };
+    drop(pins);
     st.metrics.uploads.fetch_add(1, Ordering::Relaxed);
     st.metrics.upload_bytes.fetch_add(used, Ordering::Relaxed);
     tracing::info!(asset = %asset.id, gaussians = asset.gaussians, "asset uploaded");

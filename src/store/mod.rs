@@ -37,7 +37,7 @@ pub use api_keys::{ApiKey, Scope, TOKEN_PREFIX};
 pub use assets::{Asset, AssetKind, GcReport, NewAsset};
 pub use attribution::{AttributionSummary, MAX_ATTRIBUTION_PAGE};
 pub use audit::{AuditEntry, AuditFilter, AuditRow, ChainReport, GENESIS_HASH, MAX_AUDIT_PAGE};
-pub use blobs::{BlobRef, BlobStore};
+pub use blobs::{BlobRef, BlobStore, PinnedBlob};
 pub use crypto::{MASTER_KEY_ENV, MasterKey};
 pub use error::{Result, StoreError};
 pub use jobs::{

@@ -267,6 +267,48 @@ fn age_blob(store: &Store, id: &str, age: Duration) {
         .expect("set mtime");
 }
 
+fn pinned(store: &Store, bytes: &[u8]) -> PinnedBlob {
+    let mut tmp = store.blobs().temp_file().expect("temp");
+    std::io::Write::write_all(&mut tmp, bytes).expect("write");
+    store.blobs().commit_pinned(tmp).expect("commit")
+}
+
+#[tokio::test]
+async fn a_failed_insert_discards_its_blobs_but_not_anyone_elses() {
+    let (_dir, store) = setup().await;
+    let kept = original(&store).await;
+
+    // Unreferenced and pinned by the caller alone (twice: scene and cameras alike): removed.
+    let a = pinned(&store, b"a rejected upload");
+    let a2 = pinned(&store, b"a rejected upload");
+    let b = pinned(&store, b"its cameras");
+    let (ida, idb) = (a.blob().sha256.clone(), b.blob().sha256.clone());
+    assert!(store.blobs().is_pinned(&ida));
+    assert_eq!(store.discard_unreferenced(vec![a, a2, b]).await.expect("discard"), 2);
+    for id in [&ida, &idb] {
+        assert!(matches!(store.blobs().path(id), Err(StoreError::NotFound)));
+        assert!(!store.blobs().is_pinned(id));
+    }
+
+    // Referenced by an asset: kept.
+    let c = pinned(&store, b"original scene bytes");
+    assert_eq!(c.blob().sha256, kept.sha256);
+    assert_eq!(store.discard_unreferenced(vec![c]).await.expect("discard"), 0);
+    store.blobs().path(&kept.sha256).expect("kept");
+
+    // Pinned by a concurrent upload of the same bytes too: kept for it, and the garbage
+    // collector leaves it alone while it is pinned, however old.
+    let d = pinned(&store, b"uploaded twice at once");
+    let other = pinned(&store, b"uploaded twice at once");
+    let id = d.blob().sha256.clone();
+    assert_eq!(store.discard_unreferenced(vec![d]).await.expect("discard"), 0);
+    store.blobs().path(&id).expect("still there for the other upload");
+    age_blob(&store, &id, Duration::from_secs(7 * 24 * 3600));
+    assert_eq!(store.collect_garbage(LONG).await.expect("gc").removed, 0);
+    drop(other);
+    assert_eq!(store.collect_garbage(LONG).await.expect("gc").removed, 1);
+}
+
 #[tokio::test]
 async fn garbage_collection_removes_old_unreferenced_blobs_only() {
     let (dir, store) = setup().await;
