@@ -1205,3 +1205,63 @@ async fn an_upload_whose_insert_fails_leaves_no_blob_behind() {
     assert_eq!(r.status(), StatusCode::CREATED);
     t.stop().await;
 }
+
+#[tokio::test]
+async fn uploaded_cameras_never_touch_the_servers_files() {
+    let mut t = TestApp::start().await;
+    let k = t.keys().await;
+    let scene = ply_bytes(&object_scene(200, 0, 6));
+    // A PNG that exists on the server, and a path above the upload's folder.
+    let png = t.dir.path().join("server.png");
+    image::RgbImage::new(64, 48).save(&png).unwrap();
+    let identity = json!([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]]);
+    let post = |file_path: String, size: bool| {
+        let mut doc = json!({"fl_x": 100.0, "frames": [
+            {"file_path": file_path, "transform_matrix": identity}
+        ]});
+        if size {
+            doc["w"] = json!(96);
+            doc["h"] = json!(72);
+        }
+        let form = Form::new()
+            .part("scene", Part::bytes(scene.clone()).file_name("s.ply"))
+            .part(
+                "cameras",
+                Part::bytes(serde_json::to_vec(&doc).unwrap()).file_name("transforms.json"),
+            );
+        t.client
+            .post(t.url("/v1/assets"))
+            .bearer_auth(&k.owner)
+            .multipart(form)
+            .send()
+    };
+    let mut details = vec![];
+    for p in [
+        "/etc/passwd".to_string(),
+        "../../../../etc/hostname".to_string(),
+        "../something".to_string(),
+        png.to_string_lossy().into_owned(),
+    ] {
+        let r = post(p.clone(), false).await.unwrap();
+        let v = assert_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
+        let d = v["detail"].as_str().unwrap().to_string();
+        assert!(d.contains("no image size"), "{p}: {d}");
+        assert!(!d.contains("passwd") && !d.contains("something") && !d.contains(".png"), "{d}");
+        assert!(!d.contains(&t.dir.path().to_string_lossy().into_owned()), "{d}");
+        details.push(v);
+    }
+    assert!(details.windows(2).all(|w| w[0] == w[1]), "{details:?}");
+    // Nothing was stored.
+    assert!(
+        stored_blobs(&t.data())
+            .iter()
+            .all(|p| p.to_string_lossy().contains("tmp"))
+    );
+    // With its size in the file, the same camera is accepted: the path is only a name, and
+    // the server's PNG (64×48) is not what sized it.
+    let r = post(png.to_string_lossy().into_owned(), true).await.unwrap();
+    assert_eq!(r.status(), StatusCode::CREATED);
+    let a: Value = r.json().await.unwrap();
+    assert_eq!(a["cameras_format"], "nerf");
+    t.stop().await;
+}

@@ -17,7 +17,7 @@ use super::AppState;
 use super::auth::Caller;
 use super::error::{ApiError, ApiResult};
 use crate::embed::sbag::Role;
-use crate::scene::camera::read_cameras;
+use crate::scene::camera::read_cameras_bytes;
 use crate::scene::format::{detect_format, read_as};
 use crate::scene::{Limits, SceneError};
 use crate::store::{Asset, AssetKind, AuditEntry, NewAsset, Scope};
@@ -65,11 +65,12 @@ struct Checked {
     cameras: Option<(usize, String)>,
 }
 
-/// Validates the spooled files with the scene and camera readers.
+/// Validates the spooled files with the scene and camera readers (`cameras`: the spooled file and
+/// the name the client gave it).
 fn check(
     scene: &std::path::Path,
     scene_name: Option<&str>,
-    cameras: Option<&std::path::Path>,
+    cameras: Option<(&std::path::Path, Option<&str>)>,
     limits: &Limits,
 ) -> Result<Checked, ApiError> {
     let bytes = std::fs::read(scene).map_err(ApiError::internal)?;
@@ -83,23 +84,18 @@ fn check(
         return Err(ApiError::unprocessable("the scene has no Gaussians"));
     }
     let cameras = match cameras {
-        Some(p) => {
-            let cams = read_cameras(p).map_err(|e| match e {
-                SceneError::Io { .. } | SceneError::IoPlain(_) => ApiError::internal(e),
-                e => ApiError::unprocessable(format!("cameras: {e}")),
-            })?;
+        Some((p, name)) => {
+            // From the bytes alone: nothing the file names on this server is opened.
+            let bytes = std::fs::read(p).map_err(ApiError::internal)?;
+            let (kind, cams) = read_cameras_bytes(&bytes, name.unwrap_or("cameras"))
+                .map_err(|e| match e {
+                    SceneError::Io { .. } | SceneError::IoPlain(_) => ApiError::internal(e),
+                    e => ApiError::unprocessable(format!("cameras: {e}")),
+                })?;
             if cams.is_empty() {
                 return Err(ApiError::unprocessable("cameras: the file holds no camera"));
             }
-            let head = std::fs::read(p).map_err(ApiError::internal)?;
-            let kind = if head.starts_with(b"\x93NUMPY") {
-                "llff"
-            } else if head.iter().find(|b| !b.is_ascii_whitespace()) == Some(&b'[') {
-                "inria"
-            } else {
-                "nerf"
-            };
-            Some((cams.len(), kind.to_string()))
+            Some((cams.len(), kind.as_str().to_string()))
         }
         None => None,
     };
@@ -162,7 +158,7 @@ pub async fn upload(
         let checked = check(
             scene.path(),
             name.as_deref(),
-            cameras.as_ref().map(|(t, _)| t.path()),
+            cameras.as_ref().map(|(t, n)| (t.path(), n.as_deref())),
             &limits,
         )?;
         // Only now does anything become permanent. The blobs stay pinned until their row is
