@@ -469,7 +469,12 @@ async fn bad_uploads_get_4xx_problems_and_leave_nothing_behind() {
         .unwrap();
     let big = ply_bytes(&object_scene(5000, 0, 1));
     assert!(big.len() > 200_000);
+    // An .spz whose gzip CRC-32 does not match its data.
+    let mut bad_crc = spz_bytes(100);
+    let at = bad_crc.len() - 8;
+    bad_crc[at] ^= 0x40;
     for (name, bytes, status) in [
+        ("bad_crc.spz", bad_crc, StatusCode::UNPROCESSABLE_ENTITY),
         ("truncated.ply", truncated, StatusCode::UNPROCESSABLE_ENTITY),
         ("bomb.ply", bomb, StatusCode::PAYLOAD_TOO_LARGE),
         ("picture.ply", png, StatusCode::UNSUPPORTED_MEDIA_TYPE),
@@ -479,6 +484,9 @@ async fn bad_uploads_get_4xx_problems_and_leave_nothing_behind() {
         let r = t.upload(&k.owner, name, bytes).await;
         let p = assert_problem(r, status).await;
         eprintln!("{name}: {}", p["detail"]);
+        if name == "bad_crc.spz" {
+            assert!(p["detail"].as_str().unwrap().contains("CRC-32"), "{p}");
+        }
     }
     // A form without the scene field, and one with an unknown field.
     let r = t
