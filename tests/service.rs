@@ -593,15 +593,32 @@ async fn missing_or_wrong_scopes_are_401_and_403() {
         .unwrap();
     let tok = created["token"].as_str().unwrap();
     assert_eq!(t.get(tok, "/v1/audit").await.status(), StatusCode::OK);
-    let r = t
-        .client
-        .delete(t.url(&format!("/v1/keys/{}", created["id"].as_str().unwrap())))
-        .bearer_auth(&admin)
-        .send()
-        .await
-        .unwrap();
+    let revoke = |id: String| {
+        t.client
+            .delete(t.url(&format!("/v1/keys/{id}")))
+            .bearer_auth(&admin)
+            .send()
+    };
+    let key_id = created["id"].as_str().unwrap().to_string();
+    let r = revoke(key_id.clone()).await.unwrap();
     assert_eq!(r.status(), StatusCode::NO_CONTENT);
     assert_problem(t.get(tok, "/v1/audit").await, StatusCode::UNAUTHORIZED).await;
+    // Revoking it again is idempotent: 204 and no second audit row. An unknown key is 404.
+    for _ in 0..3 {
+        let r = revoke(key_id.clone()).await.unwrap();
+        assert_eq!(r.status(), StatusCode::NO_CONTENT);
+    }
+    let r = revoke(uuid::Uuid::new_v4().to_string()).await.unwrap();
+    assert_problem(r, StatusCode::NOT_FOUND).await;
+    let audit: Value = t
+        .get(&k.auditor, "/v1/audit?action=key.revoke")
+        .await
+        .json()
+        .await
+        .unwrap();
+    let rows = audit["items"].as_array().unwrap();
+    assert_eq!(rows.len(), 1, "{audit}");
+    assert_eq!(rows[0]["details"]["key_id"], key_id);
     t.stop().await;
 }
 

@@ -1587,13 +1587,44 @@ async fn api_keys_authenticate_revoke_and_store_only_the_hash() {
     assert_eq!("auditor".parse::<Scope>().expect("scope"), Scope::Auditor);
     assert!("root".parse::<Scope>().is_err());
     assert!(store.create_api_key("x", &[]).await.is_err());
-    store.revoke_api_key(key.id).await.expect("revoke");
-    store.revoke_api_key(key.id).await.expect("revoke again");
+    let audited = || async {
+        scalar(&dir, "SELECT COUNT(*) FROM audit WHERE action = 'key.revoke'").await
+    };
+    assert!(
+        store
+            .revoke_api_key(key.id, entry("key.revoke"))
+            .await
+            .expect("revoke")
+    );
+    assert_eq!(audited().await, 1);
+    let revoked_at = || async {
+        let mut c = raw(&dir).await;
+        sqlx::query_scalar::<_, String>("SELECT revoked_at FROM api_keys")
+            .fetch_one(&mut c)
+            .await
+            .expect("revoked_at")
+    };
+    let first = revoked_at().await;
+    // Again: nothing changes, no second audit row.
+    for _ in 0..3 {
+        assert!(
+            !store
+                .revoke_api_key(key.id, entry("key.revoke"))
+                .await
+                .expect("revoke again")
+        );
+    }
+    assert_eq!(audited().await, 1);
+    assert_eq!(revoked_at().await, first);
     assert_eq!(store.authenticate(&token).await.expect("auth"), None);
     assert!(matches!(
-        store.revoke_api_key(Uuid::new_v4()).await,
+        store
+            .revoke_api_key(Uuid::new_v4(), entry("key.revoke"))
+            .await,
         Err(StoreError::NotFound)
     ));
+    assert_eq!(audited().await, 1);
+    assert!(store.verify_audit_chain().await.expect("chain").ok);
     assert_eq!(store.api_key_count().await.expect("count"), 1);
     assert!(store.list_api_keys().await.expect("list")[0].revoked);
 }
