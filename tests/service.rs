@@ -1290,3 +1290,31 @@ async fn uploaded_cameras_never_touch_the_servers_files() {
     assert_eq!(a["cameras_format"], "nerf");
     t.stop().await;
 }
+
+#[tokio::test]
+async fn audit_time_filters_must_be_real_instants() {
+    let mut t = TestApp::start().await;
+    let k = t.keys().await;
+    for q in [
+        "since=2026-99-99T99:99:99Z",
+        "since=2026-02-30T00:00:00Z",
+        "until=2026-12-01T24:00:00Z",
+        "until=2026-12-01T16:09:21.1234Z",
+        "since=2026-12-01",
+    ] {
+        let r = t.get(&k.auditor, &format!("/v1/audit?{q}")).await;
+        let p = assert_problem(r, StatusCode::BAD_REQUEST).await;
+        assert!(p["detail"].as_str().unwrap().contains("RFC 3339"), "{q}: {p}");
+    }
+    // Real instants work, with or without fraction digits.
+    for q in [
+        "since=2000-01-01T00:00:00Z",
+        "since=2000-01-01T00:00:00.5Z&until=2999-12-31T23:59:59.999Z",
+    ] {
+        let r = t.get(&k.auditor, &format!("/v1/audit?{q}")).await;
+        assert_eq!(r.status(), StatusCode::OK, "{q}");
+        let v: Value = r.json().await.unwrap();
+        assert!(!v["items"].as_array().unwrap().is_empty(), "{q}: {v}");
+    }
+    t.stop().await;
+}

@@ -45,6 +45,7 @@ pub use jobs::{
     ProgressUpdate, backoff,
 };
 pub use keys::{MAX_MESSAGE_BITS, WatermarkKey};
+pub use time::normalize_timestamp;
 pub use verifications::NewVerification;
 
 use serde::Serialize;
