@@ -1651,3 +1651,44 @@ async fn database_uses_wal_and_foreign_keys() {
     assert_eq!(busy, 5000);
     store.ping().await.expect("ping");
 }
+
+#[cfg(unix)]
+#[tokio::test]
+async fn the_database_is_readable_by_its_owner_only() {
+    use std::os::unix::fs::PermissionsExt;
+    let mode = |p: &std::path::Path| {
+        std::fs::metadata(p).expect("meta").permissions().mode() & 0o777
+    };
+    let dir = tempfile::tempdir().expect("tempdir");
+    let master = MasterKey::generate().to_hex();
+    async fn open(dir: &std::path::Path, master: &str) -> Store {
+        Store::open(dir, MasterKey::from_hex(master).expect("key"))
+            .await
+            .expect("open")
+    }
+    let store = open(dir.path(), &master).await;
+    // A write, so that the -wal and -shm files exist.
+    store.append_audit(entry("test")).await.expect("audit");
+    let db = dir.path().join(DB_FILE);
+    let wal = dir.path().join(format!("{DB_FILE}-wal"));
+    let shm = dir.path().join(format!("{DB_FILE}-shm"));
+    for p in [&db, &wal, &shm] {
+        assert_eq!(mode(p), 0o600, "{}", p.display());
+    }
+    store.close().await;
+
+    // A database created world-readable by an earlier version is restricted when opened.
+    for p in [&db, &wal, &shm] {
+        if p.exists() {
+            std::fs::set_permissions(p, std::fs::Permissions::from_mode(0o644)).expect("chmod");
+        }
+    }
+    let store = open(dir.path(), &master).await;
+    store.ping().await.expect("ping");
+    assert_eq!(mode(&db), 0o600);
+    for p in [&wal, &shm] {
+        if p.exists() {
+            assert_eq!(mode(p), 0o600, "{}", p.display());
+        }
+    }
+}
