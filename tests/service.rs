@@ -259,8 +259,11 @@ fn stored_blobs(data: &Path) -> Vec<PathBuf> {
             }
         }
     }
+    let blobs = data.join("blobs");
     let mut out = vec![];
-    walk(&data.join("blobs"), &mut out);
+    walk(&blobs, &mut out);
+    out.retain(|p| !p.starts_with(blobs.join("tmp")));
+    out.sort();
     out
 }
 
@@ -500,9 +503,7 @@ async fn bad_uploads_get_4xx_problems_and_leave_nothing_behind() {
     assert_problem(r, StatusCode::BAD_REQUEST).await;
     // Nothing stored: no blob, no asset row, no upload in the audit log.
     assert!(
-        stored_blobs(&t.data())
-            .iter()
-            .all(|p| p.to_string_lossy().contains("tmp")),
+        stored_blobs(&t.data()).is_empty(),
         "{:?}",
         stored_blobs(&t.data())
     );
@@ -1022,11 +1023,7 @@ async fn cameras_uploaded_with_a_scene_are_validated_too() {
     let r = post(b"{\"frames\": 7}".to_vec()).await.unwrap();
     let p = assert_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
     assert!(p["detail"].as_str().unwrap().contains("cameras"), "{p}");
-    assert!(
-        stored_blobs(&t.data())
-            .iter()
-            .all(|p| p.to_string_lossy().contains("tmp"))
-    );
+    assert_eq!(stored_blobs(&t.data()), Vec::<PathBuf>::new());
     let r = post(serde_json::to_vec(&cams).unwrap()).await.unwrap();
     assert_eq!(r.status(), StatusCode::CREATED);
     let a: Value = r.json().await.unwrap();
@@ -1154,15 +1151,7 @@ async fn an_upload_whose_insert_fails_leaves_no_blob_behind() {
         .as_str()
         .unwrap()
         .to_string();
-    let committed = |t: &TestApp| -> Vec<PathBuf> {
-        let mut v: Vec<PathBuf> = stored_blobs(&t.data())
-            .into_iter()
-            .filter(|p| !p.to_string_lossy().contains("tmp"))
-            .collect();
-        v.sort();
-        v
-    };
-    let before = committed(&t);
+    let before = stored_blobs(&t.data());
     assert_eq!(before.len(), 1, "{before:?}");
 
     // The database refuses every new asset row (as a full disk or a broken file would).
@@ -1209,7 +1198,7 @@ async fn an_upload_whose_insert_fails_leaves_no_blob_behind() {
     assert!(!p["detail"].as_str().unwrap().contains("refused"), "{p}");
     let r = t.upload(&k.owner, "again.ply", kept.clone()).await;
     assert_problem(r, StatusCode::INTERNAL_SERVER_ERROR).await;
-    assert_eq!(committed(&t), before);
+    assert_eq!(stored_blobs(&t.data()), before);
 
     sqlx::query("DROP TRIGGER refuse_assets")
         .execute(&db)
@@ -1277,11 +1266,7 @@ async fn uploaded_cameras_never_touch_the_servers_files() {
     }
     assert!(details.windows(2).all(|w| w[0] == w[1]), "{details:?}");
     // Nothing was stored.
-    assert!(
-        stored_blobs(&t.data())
-            .iter()
-            .all(|p| p.to_string_lossy().contains("tmp"))
-    );
+    assert_eq!(stored_blobs(&t.data()), Vec::<PathBuf>::new());
     // With its size in the file, the same camera is accepted: the path is only a name, and
     // the server's PNG (64×48) is not what sized it.
     let r = post(png.to_string_lossy().into_owned(), true).await.unwrap();
