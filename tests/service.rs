@@ -1064,7 +1064,9 @@ fn compressed_ply_bytes(n: usize) -> Vec<u8> {
     }
     h += "end_header\n";
     let mut out = h.into_bytes();
-    for v in [-1.0f32, -1.0, -1.0, 1.0, 1.0, 1.0, -5.0, -5.0, -5.0, -3.0, -3.0, -3.0] {
+    for v in [
+        -1.0f32, -1.0, -1.0, 1.0, 1.0, 1.0, -5.0, -5.0, -5.0, -3.0, -3.0, -3.0,
+    ] {
         out.extend_from_slice(&v.to_le_bytes());
     }
     let mut rng = splatmark::scene::synthetic::Rng::new(7);
@@ -1113,22 +1115,39 @@ async fn every_supported_scene_format_uploads_and_round_trips() {
     let k = t.keys().await;
     for (name, bytes, format) in [
         ("a.ply", ply_bytes(&object_scene(100, 1, 3)), "ply"),
-        ("b.compressed.ply", compressed_ply_bytes(100), "compressed_ply"),
+        (
+            "b.compressed.ply",
+            compressed_ply_bytes(100),
+            "compressed_ply",
+        ),
         ("c.splat", splat_bytes(100), "splat"),
         ("d.spz", spz_bytes(100), "spz"),
     ] {
         let r = t.upload(&k.owner, name, bytes.clone()).await;
-        assert_eq!(r.status(), StatusCode::CREATED, "{name}: {}", r.text().await.unwrap());
+        assert_eq!(
+            r.status(),
+            StatusCode::CREATED,
+            "{name}: {}",
+            r.text().await.unwrap()
+        );
         let a: Value = r.json().await.unwrap();
         assert_eq!(a["format"], format, "{name}: {a}");
         assert_eq!(a["gaussians"], 100, "{name}: {a}");
         let id = a["id"].as_str().unwrap();
         // The metadata reads back, and the original comes back byte for byte.
-        let m: Value = t.get(&k.owner, &format!("/v1/assets/{id}")).await.json().await.unwrap();
+        let m: Value = t
+            .get(&k.owner, &format!("/v1/assets/{id}"))
+            .await
+            .json()
+            .await
+            .unwrap();
         assert_eq!(m["format"], format, "{name}: {m}");
         let f = t.get(&k.owner, &format!("/v1/assets/{id}/file")).await;
         assert_eq!(f.status(), StatusCode::OK);
-        assert!(f.bytes().await.unwrap() == bytes, "{name}: the download differs");
+        assert!(
+            f.bytes().await.unwrap() == bytes,
+            "{name}: the download differs"
+        );
     }
     let audit: Value = t
         .get(&k.auditor, "/v1/audit?action=asset.upload")
@@ -1260,8 +1279,14 @@ async fn uploaded_cameras_never_touch_the_servers_files() {
         let v = assert_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
         let d = v["detail"].as_str().unwrap().to_string();
         assert!(d.contains("no image size"), "{p}: {d}");
-        assert!(!d.contains("passwd") && !d.contains("something") && !d.contains(".png"), "{d}");
-        assert!(!d.contains(&t.dir.path().to_string_lossy().into_owned()), "{d}");
+        assert!(
+            !d.contains("passwd") && !d.contains("something") && !d.contains(".png"),
+            "{d}"
+        );
+        assert!(
+            !d.contains(&t.dir.path().to_string_lossy().into_owned()),
+            "{d}"
+        );
         details.push(v);
     }
     assert!(details.windows(2).all(|w| w[0] == w[1]), "{details:?}");
@@ -1269,7 +1294,9 @@ async fn uploaded_cameras_never_touch_the_servers_files() {
     assert_eq!(stored_blobs(&t.data()), Vec::<PathBuf>::new());
     // With its size in the file, the same camera is accepted: the path is only a name, and
     // the server's PNG (64×48) is not what sized it.
-    let r = post(png.to_string_lossy().into_owned(), true).await.unwrap();
+    let r = post(png.to_string_lossy().into_owned(), true)
+        .await
+        .unwrap();
     assert_eq!(r.status(), StatusCode::CREATED);
     let a: Value = r.json().await.unwrap();
     assert_eq!(a["cameras_format"], "nerf");
@@ -1289,7 +1316,10 @@ async fn audit_time_filters_must_be_real_instants() {
     ] {
         let r = t.get(&k.auditor, &format!("/v1/audit?{q}")).await;
         let p = assert_problem(r, StatusCode::BAD_REQUEST).await;
-        assert!(p["detail"].as_str().unwrap().contains("RFC 3339"), "{q}: {p}");
+        assert!(
+            p["detail"].as_str().unwrap().contains("RFC 3339"),
+            "{q}: {p}"
+        );
     }
     // Real instants work, with or without fraction digits.
     for q in [

@@ -87,8 +87,8 @@ fn check(
         Some((p, name)) => {
             // From the bytes alone: nothing the file names on this server is opened.
             let bytes = std::fs::read(p).map_err(ApiError::internal)?;
-            let (kind, cams) = read_cameras_bytes(&bytes, name.unwrap_or("cameras"))
-                .map_err(|e| match e {
+            let (kind, cams) =
+                read_cameras_bytes(&bytes, name.unwrap_or("cameras")).map_err(|e| match e {
                     SceneError::Io { .. } | SceneError::IoPlain(_) => ApiError::internal(e),
                     e => ApiError::unprocessable(format!("cameras: {e}")),
                 })?;

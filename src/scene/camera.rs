@@ -464,9 +464,11 @@ fn nerf_frame(
     let own = &frame.intrinsics;
     let pick = |f: fn(&NerfIntrinsics) -> Option<f64>| f(own).or_else(|| f(top));
     let no_size = || {
-        err("no image size: give w and h (the images a camera file names are not opened \
+        err(
+            "no image size: give w and h (the images a camera file names are not opened \
              when it is uploaded)"
-            .to_string())
+                .to_string(),
+        )
     };
     let w = match (pick(|k| k.w), img_size) {
         (Some(w), _) => positive_dim(w, "w").map_err(&err)?,
@@ -1452,7 +1454,12 @@ mod tests {
             read_cameras_bytes(with_size.to_string().as_bytes(), "t.json").expect("read");
         assert_eq!(kind, CameraFormat::Nerf);
         assert_eq!(
-            (cams[0].width, cams[0].height, cams[0].fx, cams[0].image.clone()),
+            (
+                cams[0].width,
+                cams[0].height,
+                cams[0].fx,
+                cams[0].image.clone()
+            ),
             (100, 80, 100.0, None)
         );
         assert_eq!(cams[0].name, "a");
@@ -1469,7 +1476,12 @@ mod tests {
         let e = without(png.to_str().unwrap());
         assert!(e.contains("no image size"), "{e}");
         assert!(!e.contains("a.png") && !e.contains('/'), "{e}");
-        for p in ["/etc/passwd", "../../etc/hostname", "missing", "/nonexistent/x.png"] {
+        for p in [
+            "/etc/passwd",
+            "../../etc/hostname",
+            "missing",
+            "/nonexistent/x.png",
+        ] {
             assert_eq!(without(p), e, "{p}");
         }
 
@@ -1478,7 +1490,10 @@ mod tests {
         let (kind, read) =
             read_cameras_bytes(inria_json(&cams).as_bytes(), "cameras.json").expect("inria");
         assert_eq!((kind, read.len()), (CameraFormat::Inria, cams.len()));
-        let npy = npy_bytes(&f8_header(&format!("({}, 17)", cams.len())), &llff_rows(&cams));
+        let npy = npy_bytes(
+            &f8_header(&format!("({}, 17)", cams.len())),
+            &llff_rows(&cams),
+        );
         let (kind, read) = read_cameras_bytes(&npy, "poses_bounds.npy").expect("llff");
         assert_eq!((kind, read.len()), (CameraFormat::Llff, cams.len()));
         assert!(read.iter().all(|c| c.image.is_none()));

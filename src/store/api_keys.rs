@@ -160,13 +160,12 @@ impl Store {
     pub async fn revoke_api_key(&self, id: Uuid, audit_entry: AuditEntry) -> Result<bool> {
         let id = id.to_string();
         let mut tx = self.begin_immediate().await?;
-        let res = sqlx::query(
-            "UPDATE api_keys SET revoked_at = ? WHERE id = ? AND revoked_at IS NULL",
-        )
-        .bind(time::now())
-        .bind(&id)
-        .execute(&mut *tx)
-        .await?;
+        let res =
+            sqlx::query("UPDATE api_keys SET revoked_at = ? WHERE id = ? AND revoked_at IS NULL")
+                .bind(time::now())
+                .bind(&id)
+                .execute(&mut *tx)
+                .await?;
         if res.rows_affected() == 0 {
             let known: Option<i64> = sqlx::query_scalar("SELECT 1 FROM api_keys WHERE id = ?")
                 .bind(&id)

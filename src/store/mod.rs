@@ -247,10 +247,7 @@ fn make_private(db: &Path) -> std::io::Result<()> {
                 Err(e) => return Err(e),
             };
             if mode & 0o077 != 0 {
-                std::fs::set_permissions(
-                    &file,
-                    std::fs::Permissions::from_mode(mode & 0o700),
-                )?;
+                std::fs::set_permissions(&file, std::fs::Permissions::from_mode(mode & 0o700))?;
                 tracing::warn!(
                     path = %file.display(),
                     "the database was readable by group or others; restricted it to its owner"

@@ -284,7 +284,13 @@ async fn a_failed_insert_discards_its_blobs_but_not_anyone_elses() {
     let b = pinned(&store, b"its cameras");
     let (ida, idb) = (a.blob().sha256.clone(), b.blob().sha256.clone());
     assert!(store.blobs().is_pinned(&ida));
-    assert_eq!(store.discard_unreferenced(vec![a, a2, b]).await.expect("discard"), 2);
+    assert_eq!(
+        store
+            .discard_unreferenced(vec![a, a2, b])
+            .await
+            .expect("discard"),
+        2
+    );
     for id in [&ida, &idb] {
         assert!(matches!(store.blobs().path(id), Err(StoreError::NotFound)));
         assert!(!store.blobs().is_pinned(id));
@@ -293,7 +299,10 @@ async fn a_failed_insert_discards_its_blobs_but_not_anyone_elses() {
     // Referenced by an asset: kept.
     let c = pinned(&store, b"original scene bytes");
     assert_eq!(c.blob().sha256, kept.sha256);
-    assert_eq!(store.discard_unreferenced(vec![c]).await.expect("discard"), 0);
+    assert_eq!(
+        store.discard_unreferenced(vec![c]).await.expect("discard"),
+        0
+    );
     store.blobs().path(&kept.sha256).expect("kept");
 
     // Pinned by a concurrent upload of the same bytes too: kept for it, and the garbage
@@ -301,8 +310,14 @@ async fn a_failed_insert_discards_its_blobs_but_not_anyone_elses() {
     let d = pinned(&store, b"uploaded twice at once");
     let other = pinned(&store, b"uploaded twice at once");
     let id = d.blob().sha256.clone();
-    assert_eq!(store.discard_unreferenced(vec![d]).await.expect("discard"), 0);
-    store.blobs().path(&id).expect("still there for the other upload");
+    assert_eq!(
+        store.discard_unreferenced(vec![d]).await.expect("discard"),
+        0
+    );
+    store
+        .blobs()
+        .path(&id)
+        .expect("still there for the other upload");
     age_blob(&store, &id, Duration::from_secs(7 * 24 * 3600));
     assert_eq!(store.collect_garbage(LONG).await.expect("gc").removed, 0);
     drop(other);
@@ -1588,7 +1603,11 @@ async fn api_keys_authenticate_revoke_and_store_only_the_hash() {
     assert!("root".parse::<Scope>().is_err());
     assert!(store.create_api_key("x", &[]).await.is_err());
     let audited = || async {
-        scalar(&dir, "SELECT COUNT(*) FROM audit WHERE action = 'key.revoke'").await
+        scalar(
+            &dir,
+            "SELECT COUNT(*) FROM audit WHERE action = 'key.revoke'",
+        )
+        .await
     };
     assert!(
         store
@@ -1656,9 +1675,8 @@ async fn database_uses_wal_and_foreign_keys() {
 #[tokio::test]
 async fn the_database_is_readable_by_its_owner_only() {
     use std::os::unix::fs::PermissionsExt;
-    let mode = |p: &std::path::Path| {
-        std::fs::metadata(p).expect("meta").permissions().mode() & 0o777
-    };
+    let mode =
+        |p: &std::path::Path| std::fs::metadata(p).expect("meta").permissions().mode() & 0o777;
     let dir = tempfile::tempdir().expect("tempdir");
     let master = MasterKey::generate().to_hex();
     async fn open(dir: &std::path::Path, master: &str) -> Store {

@@ -65,10 +65,8 @@ pub(crate) fn is_timestamp(s: &str) -> bool {
 
 /// The date and time fields of a string of [`is_timestamp`]'s shape are in range.
 fn in_calendar(b: &[u8]) -> bool {
-    let num = |r: std::ops::Range<usize>| {
-        b[r].iter()
-            .fold(0u32, |n, &c| n * 10 + u32::from(c - b'0'))
-    };
+    let num =
+        |r: std::ops::Range<usize>| b[r].iter().fold(0u32, |n, &c| n * 10 + u32::from(c - b'0'));
     let (y, m, d) = (num(0..4), num(5..7), num(8..10));
     let leap = (y % 4 == 0 && y % 100 != 0) || y % 400 == 0;
     let days = match m {
@@ -122,7 +120,11 @@ mod tests {
             ("2024-02-29T23:59:59Z", "2024-02-29T23:59:59.000Z"),
             ("2000-02-29T00:00:00Z", "2000-02-29T00:00:00.000Z"),
         ] {
-            assert_eq!(normalize_timestamp(given).as_deref(), Some(stored), "{given}");
+            assert_eq!(
+                normalize_timestamp(given).as_deref(),
+                Some(stored),
+                "{given}"
+            );
         }
         for bad in [
             "2026-99-99T99:99:99Z",
