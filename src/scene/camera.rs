@@ -195,6 +195,10 @@ pub fn resize_all(cams: Vec<Camera>, width: Option<u32>, height: Option<u32>) ->
 ///
 /// A directory is searched for `cameras.json`, `transforms.json`, `transforms_train.json` and
 /// `poses_bounds.npy`, in that order.
+///
+/// This follows the paths the file names (images beside it, or wherever a `file_path` points): it
+/// is for the user's own files (the CLI). A file from someone else (an upload) is read with
+/// [`read_cameras_bytes`], which opens nothing.
 pub fn read_cameras(path: &Path) -> Result<Vec<Camera>, SceneError> {
     if path.is_dir() {
         const CANDIDATES: [&str; 4] = [
