@@ -259,8 +259,11 @@ fn stored_blobs(data: &Path) -> Vec<PathBuf> {
             }
         }
     }
+    let blobs = data.join("blobs");
     let mut out = vec![];
-    walk(&data.join("blobs"), &mut out);
+    walk(&blobs, &mut out);
+    out.retain(|p| !p.starts_with(blobs.join("tmp")));
+    out.sort();
     out
 }
 
@@ -469,7 +472,12 @@ async fn bad_uploads_get_4xx_problems_and_leave_nothing_behind() {
         .unwrap();
     let big = ply_bytes(&object_scene(5000, 0, 1));
     assert!(big.len() > 200_000);
+    // An .spz whose gzip CRC-32 does not match its data.
+    let mut bad_crc = spz_bytes(100);
+    let at = bad_crc.len() - 8;
+    bad_crc[at] ^= 0x40;
     for (name, bytes, status) in [
+        ("bad_crc.spz", bad_crc, StatusCode::UNPROCESSABLE_ENTITY),
         ("truncated.ply", truncated, StatusCode::UNPROCESSABLE_ENTITY),
         ("bomb.ply", bomb, StatusCode::PAYLOAD_TOO_LARGE),
         ("picture.ply", png, StatusCode::UNSUPPORTED_MEDIA_TYPE),
@@ -479,6 +487,9 @@ async fn bad_uploads_get_4xx_problems_and_leave_nothing_behind() {
         let r = t.upload(&k.owner, name, bytes).await;
         let p = assert_problem(r, status).await;
         eprintln!("{name}: {}", p["detail"]);
+        if name == "bad_crc.spz" {
+            assert!(p["detail"].as_str().unwrap().contains("CRC-32"), "{p}");
+        }
     }
     // A form without the scene field, and one with an unknown field.
     let r = t
@@ -492,9 +503,7 @@ async fn bad_uploads_get_4xx_problems_and_leave_nothing_behind() {
     assert_problem(r, StatusCode::BAD_REQUEST).await;
     // Nothing stored: no blob, no asset row, no upload in the audit log.
     assert!(
-        stored_blobs(&t.data())
-            .iter()
-            .all(|p| p.to_string_lossy().contains("tmp")),
+        stored_blobs(&t.data()).is_empty(),
         "{:?}",
         stored_blobs(&t.data())
     );
@@ -585,15 +594,32 @@ async fn missing_or_wrong_scopes_are_401_and_403() {
         .unwrap();
     let tok = created["token"].as_str().unwrap();
     assert_eq!(t.get(tok, "/v1/audit").await.status(), StatusCode::OK);
-    let r = t
-        .client
-        .delete(t.url(&format!("/v1/keys/{}", created["id"].as_str().unwrap())))
-        .bearer_auth(&admin)
-        .send()
-        .await
-        .unwrap();
+    let revoke = |id: String| {
+        t.client
+            .delete(t.url(&format!("/v1/keys/{id}")))
+            .bearer_auth(&admin)
+            .send()
+    };
+    let key_id = created["id"].as_str().unwrap().to_string();
+    let r = revoke(key_id.clone()).await.unwrap();
     assert_eq!(r.status(), StatusCode::NO_CONTENT);
     assert_problem(t.get(tok, "/v1/audit").await, StatusCode::UNAUTHORIZED).await;
+    // Revoking it again is idempotent: 204 and no second audit row. An unknown key is 404.
+    for _ in 0..3 {
+        let r = revoke(key_id.clone()).await.unwrap();
+        assert_eq!(r.status(), StatusCode::NO_CONTENT);
+    }
+    let r = revoke(uuid::Uuid::new_v4().to_string()).await.unwrap();
+    assert_problem(r, StatusCode::NOT_FOUND).await;
+    let audit: Value = t
+        .get(&k.auditor, "/v1/audit?action=key.revoke")
+        .await
+        .json()
+        .await
+        .unwrap();
+    let rows = audit["items"].as_array().unwrap();
+    assert_eq!(rows.len(), 1, "{audit}");
+    assert_eq!(rows[0]["details"]["key_id"], key_id);
     t.stop().await;
 }
 
@@ -997,15 +1023,313 @@ async fn cameras_uploaded_with_a_scene_are_validated_too() {
     let r = post(b"{\"frames\": 7}".to_vec()).await.unwrap();
     let p = assert_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
     assert!(p["detail"].as_str().unwrap().contains("cameras"), "{p}");
-    assert!(
-        stored_blobs(&t.data())
-            .iter()
-            .all(|p| p.to_string_lossy().contains("tmp"))
-    );
+    assert_eq!(stored_blobs(&t.data()), Vec::<PathBuf>::new());
     let r = post(serde_json::to_vec(&cams).unwrap()).await.unwrap();
     assert_eq!(r.status(), StatusCode::CREATED);
     let a: Value = r.json().await.unwrap();
     assert_eq!(a["cameras_format"], "inria");
     assert_eq!(a["cameras_sha256"].as_str().unwrap().len(), 64);
+    t.stop().await;
+}
+
+/// `n` Gaussians as a SuperSplat compressed PLY (one chunk of bounds, packed words from a fixed
+/// generator: every 32-bit pattern decodes to a valid Gaussian).
+fn compressed_ply_bytes(n: usize) -> Vec<u8> {
+    assert!((1..=256).contains(&n));
+    let mut h = String::from("ply\nformat binary_little_endian 1.0\nelement chunk 1\n");
+    for p in [
+        "min_x",
+        "min_y",
+        "min_z",
+        "max_x",
+        "max_y",
+        "max_z",
+        "min_scale_x",
+        "min_scale_y",
+        "min_scale_z",
+        "max_scale_x",
+        "max_scale_y",
+        "max_scale_z",
+    ] {
+        h += &format!("property float {p}\n");
+    }
+    h += &format!("element vertex {n}\n");
+    for p in [
+        "packed_position",
+        "packed_rotation",
+        "packed_scale",
+        "packed_color",
+    ] {
+        h += &format!("property uint {p}\n");
+    }
+    h += "end_header\n";
+    let mut out = h.into_bytes();
+    for v in [
+        -1.0f32, -1.0, -1.0, 1.0, 1.0, 1.0, -5.0, -5.0, -5.0, -3.0, -3.0, -3.0,
+    ] {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    let mut rng = splatmark::scene::synthetic::Rng::new(7);
+    for _ in 0..n * 4 {
+        out.extend_from_slice(&(rng.next_u64() as u32).to_le_bytes());
+    }
+    out
+}
+
+/// `n` Gaussians as an antimatter15 `.splat`.
+fn splat_bytes(n: usize) -> Vec<u8> {
+    let mut rng = splatmark::scene::synthetic::Rng::new(8);
+    let mut out = vec![];
+    for _ in 0..n {
+        for _ in 0..3 {
+            out.extend_from_slice(&rng.range(-1.0, 1.0).to_le_bytes());
+        }
+        for _ in 0..3 {
+            out.extend_from_slice(&rng.range(0.01, 0.05).to_le_bytes());
+        }
+        out.extend_from_slice(&[200, 100, 50, 180, 255, 128, 128, 128]);
+    }
+    out
+}
+
+/// `n` Gaussians as a Niantic `.spz` (version 2, gzip).
+fn spz_bytes(n: usize) -> Vec<u8> {
+    use std::io::Write;
+    let mut rng = splatmark::scene::synthetic::Rng::new(9);
+    let mut raw = b"NGSP".to_vec();
+    raw.extend_from_slice(&2u32.to_le_bytes());
+    raw.extend_from_slice(&(n as u32).to_le_bytes());
+    raw.extend_from_slice(&[0, 12, 0, 0]);
+    // positions (9), alphas (1), colours (3), scales (3), rotations (3) bytes per point.
+    for per_point in [9, 1, 3, 3, 3] {
+        raw.extend((0..n * per_point).map(|_| rng.next_u64() as u8));
+    }
+    let mut e = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
+    e.write_all(&raw).unwrap();
+    e.finish().unwrap()
+}
+
+#[tokio::test]
+async fn every_supported_scene_format_uploads_and_round_trips() {
+    let mut t = TestApp::start().await;
+    let k = t.keys().await;
+    for (name, bytes, format) in [
+        ("a.ply", ply_bytes(&object_scene(100, 1, 3)), "ply"),
+        (
+            "b.compressed.ply",
+            compressed_ply_bytes(100),
+            "compressed_ply",
+        ),
+        ("c.splat", splat_bytes(100), "splat"),
+        ("d.spz", spz_bytes(100), "spz"),
+    ] {
+        let r = t.upload(&k.owner, name, bytes.clone()).await;
+        assert_eq!(
+            r.status(),
+            StatusCode::CREATED,
+            "{name}: {}",
+            r.text().await.unwrap()
+        );
+        let a: Value = r.json().await.unwrap();
+        assert_eq!(a["format"], format, "{name}: {a}");
+        assert_eq!(a["gaussians"], 100, "{name}: {a}");
+        let id = a["id"].as_str().unwrap();
+        // The metadata reads back, and the original comes back byte for byte.
+        let m: Value = t
+            .get(&k.owner, &format!("/v1/assets/{id}"))
+            .await
+            .json()
+            .await
+            .unwrap();
+        assert_eq!(m["format"], format, "{name}: {m}");
+        let f = t.get(&k.owner, &format!("/v1/assets/{id}/file")).await;
+        assert_eq!(f.status(), StatusCode::OK);
+        assert!(
+            f.bytes().await.unwrap() == bytes,
+            "{name}: the download differs"
+        );
+    }
+    let audit: Value = t
+        .get(&k.auditor, "/v1/audit?action=asset.upload")
+        .await
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(audit["items"].as_array().unwrap().len(), 4);
+    t.stop().await;
+}
+
+#[tokio::test]
+async fn an_upload_whose_insert_fails_leaves_no_blob_behind() {
+    let mut t = TestApp::start().await;
+    let k = t.keys().await;
+    let kept = ply_bytes(&object_scene(100, 0, 4));
+    let r = t.upload(&k.owner, "kept.ply", kept.clone()).await;
+    assert_eq!(r.status(), StatusCode::CREATED);
+    let kept_id = r.json::<Value>().await.unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let before = stored_blobs(&t.data());
+    assert_eq!(before.len(), 1, "{before:?}");
+
+    // The database refuses every new asset row (as a full disk or a broken file would).
+    let db = sqlx::sqlite::SqlitePoolOptions::new()
+        .max_connections(1)
+        .connect_with(
+            sqlx::sqlite::SqliteConnectOptions::new()
+                .filename(t.data().join("splatmark.db"))
+                .busy_timeout(Duration::from_secs(5)),
+        )
+        .await
+        .unwrap();
+    sqlx::query(
+        "CREATE TRIGGER refuse_assets BEFORE INSERT ON assets \
+         BEGIN SELECT RAISE(ABORT, 'refused by the test'); END",
+    )
+    .execute(&db)
+    .await
+    .unwrap();
+
+    // A new scene, with cameras: neither blob stays. The same bytes as a stored asset: that
+    // asset's blob stays.
+    let cams = json!([{
+        "id": 0, "img_name": "c0", "width": 96, "height": 96,
+        "position": [0.0, 0.0, -4.0],
+        "rotation": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+        "fx": 100.0, "fy": 100.0
+    }]);
+    let form = Form::new()
+        .part("scene", Part::bytes(splat_bytes(50)).file_name("new.splat"))
+        .part(
+            "cameras",
+            Part::bytes(serde_json::to_vec(&cams).unwrap()).file_name("cameras.json"),
+        );
+    let r = t
+        .client
+        .post(t.url("/v1/assets"))
+        .bearer_auth(&k.owner)
+        .multipart(form)
+        .send()
+        .await
+        .unwrap();
+    let p = assert_problem(r, StatusCode::INTERNAL_SERVER_ERROR).await;
+    assert!(!p["detail"].as_str().unwrap().contains("refused"), "{p}");
+    let r = t.upload(&k.owner, "again.ply", kept.clone()).await;
+    assert_problem(r, StatusCode::INTERNAL_SERVER_ERROR).await;
+    assert_eq!(stored_blobs(&t.data()), before);
+
+    sqlx::query("DROP TRIGGER refuse_assets")
+        .execute(&db)
+        .await
+        .unwrap();
+    db.close().await;
+    let f = t.get(&k.owner, &format!("/v1/assets/{kept_id}/file")).await;
+    assert_eq!(f.status(), StatusCode::OK);
+    assert!(f.bytes().await.unwrap() == kept);
+    let audit: Value = t
+        .get(&k.auditor, "/v1/audit?action=asset.upload")
+        .await
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(audit["items"].as_array().unwrap().len(), 1);
+    let r = t.upload(&k.owner, "new.splat", splat_bytes(50)).await;
+    assert_eq!(r.status(), StatusCode::CREATED);
+    t.stop().await;
+}
+
+#[tokio::test]
+async fn uploaded_cameras_never_touch_the_servers_files() {
+    let mut t = TestApp::start().await;
+    let k = t.keys().await;
+    let scene = ply_bytes(&object_scene(200, 0, 6));
+    // A PNG that exists on the server, and a path above the upload's folder.
+    let png = t.dir.path().join("server.png");
+    image::RgbImage::new(64, 48).save(&png).unwrap();
+    let identity = json!([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]]);
+    let post = |file_path: String, size: bool| {
+        let mut doc = json!({"fl_x": 100.0, "frames": [
+            {"file_path": file_path, "transform_matrix": identity}
+        ]});
+        if size {
+            doc["w"] = json!(96);
+            doc["h"] = json!(72);
+        }
+        let form = Form::new()
+            .part("scene", Part::bytes(scene.clone()).file_name("s.ply"))
+            .part(
+                "cameras",
+                Part::bytes(serde_json::to_vec(&doc).unwrap()).file_name("transforms.json"),
+            );
+        t.client
+            .post(t.url("/v1/assets"))
+            .bearer_auth(&k.owner)
+            .multipart(form)
+            .send()
+    };
+    let mut details = vec![];
+    for p in [
+        "/etc/passwd".to_string(),
+        "../../../../etc/hostname".to_string(),
+        "../something".to_string(),
+        png.to_string_lossy().into_owned(),
+    ] {
+        let r = post(p.clone(), false).await.unwrap();
+        let v = assert_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
+        let d = v["detail"].as_str().unwrap().to_string();
+        assert!(d.contains("no image size"), "{p}: {d}");
+        assert!(
+            !d.contains("passwd") && !d.contains("something") && !d.contains(".png"),
+            "{d}"
+        );
+        assert!(
+            !d.contains(&t.dir.path().to_string_lossy().into_owned()),
+            "{d}"
+        );
+        details.push(v);
+    }
+    assert!(details.windows(2).all(|w| w[0] == w[1]), "{details:?}");
+    // Nothing was stored.
+    assert_eq!(stored_blobs(&t.data()), Vec::<PathBuf>::new());
+    // With its size in the file, the same camera is accepted: the path is only a name, and
+    // the server's PNG (64×48) is not what sized it.
+    let r = post(png.to_string_lossy().into_owned(), true)
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::CREATED);
+    let a: Value = r.json().await.unwrap();
+    assert_eq!(a["cameras_format"], "nerf");
+    t.stop().await;
+}
+
+#[tokio::test]
+async fn audit_time_filters_must_be_real_instants() {
+    let mut t = TestApp::start().await;
+    let k = t.keys().await;
+    for q in [
+        "since=2026-99-99T99:99:99Z",
+        "since=2026-02-30T00:00:00Z",
+        "until=2026-12-01T24:00:00Z",
+        "until=2026-12-01T16:09:21.1234Z",
+        "since=2026-12-01",
+    ] {
+        let r = t.get(&k.auditor, &format!("/v1/audit?{q}")).await;
+        let p = assert_problem(r, StatusCode::BAD_REQUEST).await;
+        assert!(
+            p["detail"].as_str().unwrap().contains("RFC 3339"),
+            "{q}: {p}"
+        );
+    }
+    // Real instants work, with or without fraction digits.
+    for q in [
+        "since=2000-01-01T00:00:00Z",
+        "since=2000-01-01T00:00:00.5Z&until=2999-12-31T23:59:59.999Z",
+    ] {
+        let r = t.get(&k.auditor, &format!("/v1/audit?{q}")).await;
+        assert_eq!(r.status(), StatusCode::OK, "{q}");
+        let v: Value = r.json().await.unwrap();
+        assert!(!v["items"].as_array().unwrap().is_empty(), "{q}: {v}");
+    }
     t.stop().await;
 }

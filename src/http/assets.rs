@@ -17,7 +17,7 @@ use super::AppState;
 use super::auth::Caller;
 use super::error::{ApiError, ApiResult};
 use crate::embed::sbag::Role;
-use crate::scene::camera::read_cameras;
+use crate::scene::camera::read_cameras_bytes;
 use crate::scene::format::{detect_format, read_as};
 use crate::scene::{Limits, SceneError};
 use crate::store::{Asset, AssetKind, AuditEntry, NewAsset, Scope};
@@ -65,11 +65,12 @@ struct Checked {
     cameras: Option<(usize, String)>,
 }
 
-/// Validates the spooled files with the scene and camera readers.
+/// Validates the spooled files with the scene and camera readers (`cameras`: the spooled file and
+/// the name the client gave it).
 fn check(
     scene: &std::path::Path,
     scene_name: Option<&str>,
-    cameras: Option<&std::path::Path>,
+    cameras: Option<(&std::path::Path, Option<&str>)>,
     limits: &Limits,
 ) -> Result<Checked, ApiError> {
     let bytes = std::fs::read(scene).map_err(ApiError::internal)?;
@@ -83,23 +84,18 @@ fn check(
         return Err(ApiError::unprocessable("the scene has no Gaussians"));
     }
     let cameras = match cameras {
-        Some(p) => {
-            let cams = read_cameras(p).map_err(|e| match e {
-                SceneError::Io { .. } | SceneError::IoPlain(_) => ApiError::internal(e),
-                e => ApiError::unprocessable(format!("cameras: {e}")),
-            })?;
+        Some((p, name)) => {
+            // From the bytes alone: nothing the file names on this server is opened.
+            let bytes = std::fs::read(p).map_err(ApiError::internal)?;
+            let (kind, cams) =
+                read_cameras_bytes(&bytes, name.unwrap_or("cameras")).map_err(|e| match e {
+                    SceneError::Io { .. } | SceneError::IoPlain(_) => ApiError::internal(e),
+                    e => ApiError::unprocessable(format!("cameras: {e}")),
+                })?;
             if cams.is_empty() {
                 return Err(ApiError::unprocessable("cameras: the file holds no camera"));
             }
-            let head = std::fs::read(p).map_err(ApiError::internal)?;
-            let kind = if head.starts_with(b"\x93NUMPY") {
-                "llff"
-            } else if head.iter().find(|b| !b.is_ascii_whitespace()) == Some(&b'[') {
-                "inria"
-            } else {
-                "nerf"
-            };
-            Some((cams.len(), kind.to_string()))
+            Some((cams.len(), kind.as_str().to_string()))
         }
         None => None,
     };
@@ -109,6 +105,16 @@ fn check(
         sh_degree: g.sh_degree,
         cameras,
     })
+}
+
+/// Removes the blobs of an upload whose asset row was not written (best effort: what fails here
+/// is logged, and the garbage collector removes it later).
+async fn discard(st: &AppState, pins: Vec<crate::store::PinnedBlob>) {
+    match st.store.discard_unreferenced(pins).await {
+        Ok(n) if n > 0 => tracing::info!(blobs = n, "removed the blobs of a rejected upload"),
+        Ok(_) => {}
+        Err(e) => tracing::warn!(error = %e, "could not remove the blobs of a rejected upload"),
+    }
 }
 
 /// `POST /v1/assets` — multipart fields `scene` (required) and `cameras` (optional).
@@ -148,29 +154,39 @@ pub async fn upload(
     };
     let blobs = st.store.blobs().clone();
     let name = scene_name.clone();
-    let (checked, scene_blob, cams_blob) = tokio::task::spawn_blocking(move || {
+    let (checked, pins, committed) = tokio::task::spawn_blocking(move || {
         let checked = check(
             scene.path(),
             name.as_deref(),
-            cameras.as_ref().map(|(t, _)| t.path()),
+            cameras.as_ref().map(|(t, n)| (t.path(), n.as_deref())),
             &limits,
         )?;
-        // Only now does anything become permanent.
-        let s = blobs.commit(scene).map_err(ApiError::internal)?;
-        let c = match cameras {
-            Some((t, _)) => Some(blobs.commit(t).map_err(ApiError::internal)?),
-            None => None,
-        };
-        Ok::<_, ApiError>((checked, s, c))
+        // Only now does anything become permanent. The blobs stay pinned until their row is
+        // written, and are removed again if it is not.
+        let mut pins = Vec::new();
+        let committed = (|| {
+            pins.push(blobs.commit_pinned(scene)?);
+            if let Some((t, _)) = cameras {
+                pins.push(blobs.commit_pinned(t)?);
+            }
+            Ok::<_, std::io::Error>(())
+        })();
+        Ok::<_, ApiError>((checked, pins, committed))
     })
     .await
     .map_err(ApiError::internal)??;
+    if let Err(e) = committed {
+        discard(&st, pins).await;
+        return Err(ApiError::internal(e));
+    }
+    let scene_blob = pins[0].blob().clone();
+    let cams_blob = pins.get(1).map(|p| p.blob().clone());
     let size = scene_blob.size;
     let (n_cams, cams_format) = match checked.cameras {
         Some((n, f)) => (Some(n), Some(f)),
         None => (None, None),
     };
-    let asset = st
+    let inserted = st
         .store
         .insert_asset(
             NewAsset {
@@ -194,7 +210,15 @@ pub async fn upload(
                 details: json!({"bytes": size, "gaussians": checked.gaussians, "cameras": n_cams}),
             },
         )
-        .await?;
+        .await;
+    let asset = match inserted {
+        Ok(a) => a,
+        Err(e) => {
+            discard(&st, pins).await;
+            return Err(e.into());
+        }
+    };
+    drop(pins);
     st.metrics.uploads.fetch_add(1, Ordering::Relaxed);
     st.metrics.upload_bytes.fetch_add(used, Ordering::Relaxed);
     tracing::info!(asset = %asset.id, gaussians = asset.gaussians, "asset uploaded");

@@ -26,19 +26,16 @@ pub struct AuditQuery {
     limit: Option<u32>,
 }
 
+/// A `since`/`until` filter must be a real RFC 3339 UTC instant (400 otherwise, before anything
+/// is queried): see [`crate::store::normalize_timestamp`].
 fn check_time(name: &str, t: &Option<String>) -> ApiResult<()> {
-    // RFC 3339 UTC as stored: 2026-12-01T16:07:47.123Z (a prefix such as a date also works).
-    if let Some(t) = t {
-        let ok = t.len() >= 10
-            && t.len() <= 30
-            && t.bytes()
-                .all(|b| b.is_ascii_digit() || b"-:T.Z".contains(&b))
-            && t.as_bytes()[4] == b'-';
-        if !ok {
-            return Err(ApiError::bad_request(format!(
-                "{name} must be an RFC 3339 UTC time such as 2026-12-01T16:00:00Z"
-            )));
-        }
+    if let Some(t) = t
+        && crate::store::normalize_timestamp(t).is_none()
+    {
+        return Err(ApiError::bad_request(format!(
+            "{name} must be an RFC 3339 UTC time such as 2026-12-01T16:00:00Z or \
+             2026-12-01T16:00:00.123Z (a real date and time, at most 3 fraction digits)"
+        )));
     }
     Ok(())
 }

@@ -54,7 +54,9 @@ pub async fn create(
         .into_response())
 }
 
-/// `DELETE /v1/keys/{id}` — revokes a key.
+/// `DELETE /v1/keys/{id}` — revokes a key: 204, with one `key.revoke` audit row. Idempotent: a
+/// key that is already revoked also gets 204, and no second audit row (the first revocation is
+/// the one on record). 404 for an unknown key.
 pub async fn revoke(
     State(st): State<AppState>,
     caller: Caller,
@@ -62,15 +64,16 @@ pub async fn revoke(
 ) -> ApiResult<Response> {
     caller.require(&[Scope::Admin])?;
     let id: Uuid = id.parse().map_err(|_| ApiError::not_found("key"))?;
-    st.store.revoke_api_key(id).await?;
-    st.store
-        .append_audit(AuditEntry {
-            actor: caller.id(),
-            action: "key.revoke".into(),
-            asset_id: None,
-            job_id: None,
-            details: json!({"key_id": id}),
-        })
-        .await?;
-    Ok(StatusCode::NO_CONTENT.into_response())
+    let entry = AuditEntry {
+        actor: caller.id(),
+        action: "key.revoke".into(),
+        asset_id: None,
+        job_id: None,
+        details: json!({"key_id": id}),
+    };
+    match st.store.revoke_api_key(id, entry).await {
+        Ok(_) => Ok(StatusCode::NO_CONTENT.into_response()),
+        Err(crate::store::StoreError::NotFound) => Err(ApiError::not_found("key")),
+        Err(e) => Err(e.into()),
+    }
 }

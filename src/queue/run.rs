@@ -9,7 +9,7 @@ use super::spec::JobSpec;
 use crate::decoder::WatermarkModel;
 use crate::embed::attribution::AttributionRecord;
 use crate::embed::pipeline::{EmbedError, EmbedReport, Progress, embed, split_views};
-use crate::scene::camera::{read_cameras, resize_all};
+use crate::scene::camera::{read_cameras_bytes, resize_all};
 use crate::scene::orbit::orbit_cameras;
 use crate::scene::{Camera, Limits, SceneError, read_scene_bytes, write_ply};
 
@@ -48,7 +48,10 @@ pub fn job_cameras(
 ) -> Result<Vec<Camera>, JobError> {
     match cameras.filter(|_| spec.use_cameras) {
         Some(p) => {
-            let cams = read_cameras(p).map_err(JobError::Cameras)?;
+            // An uploaded file: read from its bytes alone, never opening what it names.
+            let bytes = std::fs::read(p)
+                .map_err(|e| JobError::Cameras(crate::scene::SceneError::IoPlain(e)))?;
+            let (_, cams) = read_cameras_bytes(&bytes, "cameras").map_err(JobError::Cameras)?;
             Ok(resize_all(cams, spec.width, spec.height))
         }
         None => orbit_cameras(g, &spec.orbit).map_err(|e| JobError::Views(e.to_string())),

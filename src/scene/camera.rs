@@ -195,6 +195,10 @@ pub fn resize_all(cams: Vec<Camera>, width: Option<u32>, height: Option<u32>) ->
 ///
 /// A directory is searched for `cameras.json`, `transforms.json`, `transforms_train.json` and
 /// `poses_bounds.npy`, in that order.
+///
+/// This follows the paths the file names (images beside it, or wherever a `file_path` points): it
+/// is for the user's own files (the CLI). A file from someone else (an upload) is read with
+/// [`read_cameras_bytes`], which opens nothing.
 pub fn read_cameras(path: &Path) -> Result<Vec<Camera>, SceneError> {
     if path.is_dir() {
         const CANDIDATES: [&str; 4] = [
@@ -230,12 +234,70 @@ pub fn read_cameras(path: &Path) -> Result<Vec<Camera>, SceneError> {
     let json = strip_bom(&bytes);
     match json.iter().find(|b| !b.is_ascii_whitespace()) {
         Some(b'[') => inria_from_json(json, path),
-        Some(b'{') => nerf_from_json(json, path),
-        _ => Err(SceneError::Camera(format!(
-            "{}: not a recognised camera file (expected an INRIA cameras.json array, a NeRF \
-             transforms.json object or an LLFF poses_bounds.npy)",
-            path.display()
-        ))),
+        Some(b'{') => nerf_from_json(json, path, Some(path.parent().unwrap_or(Path::new("")))),
+        _ => Err(not_a_camera_file(path)),
+    }
+}
+
+fn not_a_camera_file(path: &Path) -> SceneError {
+    SceneError::Camera(format!(
+        "{}: not a recognised camera file (expected an INRIA cameras.json array, a NeRF \
+         transforms.json object or an LLFF poses_bounds.npy)",
+        path.display()
+    ))
+}
+
+/// The kind of camera file [`read_cameras_bytes`] found.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum CameraFormat {
+    /// INRIA gaussian-splatting `cameras.json`.
+    Inria,
+    /// NeRF / nerfstudio `transforms.json`.
+    Nerf,
+    /// LLFF `poses_bounds.npy`.
+    Llff,
+}
+
+impl CameraFormat {
+    /// The stored name (`assets.cameras_format`): `inria`, `nerf` or `llff`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            CameraFormat::Inria => "inria",
+            CameraFormat::Nerf => "nerf",
+            CameraFormat::Llff => "llff",
+        }
+    }
+}
+
+/// Reads a camera file that came without its folder — an upload, or the blob stored from one —
+/// from its bytes alone, deciding by content as [`read_cameras`] does. It never opens another
+/// file, so what a hostile file names on the server can neither be read nor probed:
+///
+/// - a NeRF `transforms.json` must give each frame's image size, `w` and `h` (per frame or at
+///   the top level): the images its `file_path`s name are not opened, the paths only name the
+///   cameras (by their file stem) and [`Camera::image`] stays empty;
+/// - LLFF poses keep their own resolution (no `images` folder is looked for);
+/// - INRIA `cameras.json` needs nothing else.
+///
+/// Errors name the file `label` (e.g. the name the client gave), never a path on the server.
+pub fn read_cameras_bytes(
+    bytes: &[u8],
+    label: &str,
+) -> Result<(CameraFormat, Vec<Camera>), SceneError> {
+    let path = Path::new(label);
+    if bytes.len() as u64 > MAX_CAMERA_FILE_BYTES {
+        return Err(SceneError::Camera(format!(
+            "{label}: more than the {MAX_CAMERA_FILE_BYTES}-byte limit for camera files"
+        )));
+    }
+    if bytes.starts_with(NPY_MAGIC) {
+        return Ok((CameraFormat::Llff, llff_from_bytes(bytes, path, None)?));
+    }
+    let json = strip_bom(bytes);
+    match json.iter().find(|b| !b.is_ascii_whitespace()) {
+        Some(b'[') => Ok((CameraFormat::Inria, inria_from_json(json, path)?)),
+        Some(b'{') => Ok((CameraFormat::Nerf, nerf_from_json(json, path, None)?)),
+        _ => Err(not_a_camera_file(path)),
     }
 }
 
@@ -344,10 +406,20 @@ struct NerfTransforms {
 /// the y and z axes are negated to get this crate's OpenCV convention.
 pub fn read_nerf_transforms(path: &Path) -> Result<Vec<Camera>, SceneError> {
     let bytes = read_limited(path)?;
-    nerf_from_json(strip_bom(&bytes), path)
+    nerf_from_json(
+        strip_bom(&bytes),
+        path,
+        Some(path.parent().unwrap_or(Path::new(""))),
+    )
 }
 
-fn nerf_from_json(json: &[u8], path: &Path) -> Result<Vec<Camera>, SceneError> {
+/// `images`: the folder `file_path`s are relative to, or `None` to open no image at all (then
+/// every frame must give `w` and `h`; see [`read_cameras_bytes`]).
+fn nerf_from_json(
+    json: &[u8],
+    path: &Path,
+    images: Option<&Path>,
+) -> Result<Vec<Camera>, SceneError> {
     let doc: NerfTransforms = serde_json::from_slice(json).map_err(|e| {
         SceneError::Camera(format!(
             "{}: not a NeRF transforms.json: {e}",
@@ -360,11 +432,10 @@ fn nerf_from_json(json: &[u8], path: &Path) -> Result<Vec<Camera>, SceneError> {
             path.display()
         )));
     }
-    let base = path.parent().unwrap_or(Path::new(""));
     doc.frames
         .iter()
         .enumerate()
-        .map(|(i, frame)| nerf_frame(i, frame, &doc.intrinsics, base, path))
+        .map(|(i, frame)| nerf_frame(i, frame, &doc.intrinsics, images, path))
         .collect()
 }
 
@@ -372,28 +443,46 @@ fn nerf_frame(
     index: usize,
     frame: &NerfFrame,
     top: &NerfIntrinsics,
-    base: &Path,
+    base: Option<&Path>,
     json_path: &Path,
 ) -> Result<Camera, SceneError> {
-    let err = |msg: String| {
-        SceneError::Camera(format!(
+    // Without an image folder the frame's path is not echoed either: the message is the same
+    // whatever the path names.
+    let err = |msg: String| match base {
+        Some(_) => SceneError::Camera(format!(
             "{}: frame {index} ('{}'): {msg}",
             json_path.display(),
             frame.file_path
-        ))
+        )),
+        None => SceneError::Camera(format!("{}: frame {index}: {msg}", json_path.display())),
     };
-    let image = resolve_image(base, &frame.file_path).map_err(&err)?;
-    let (img_w, img_h) = image_size(&image).map_err(&err)?;
+    let (image, img_size) = match base {
+        Some(base) => {
+            let image = resolve_image(base, &frame.file_path).map_err(&err)?;
+            let size = image_size(&image).map_err(&err)?;
+            (Some(image), Some(size))
+        }
+        None => (None, None),
+    };
 
     let own = &frame.intrinsics;
     let pick = |f: fn(&NerfIntrinsics) -> Option<f64>| f(own).or_else(|| f(top));
-    let w = match pick(|k| k.w) {
-        Some(w) => positive_dim(w, "w").map_err(&err)?,
-        None => img_w,
+    let no_size = || {
+        err(
+            "no image size: give w and h (the images a camera file names are not opened \
+             when it is uploaded)"
+                .to_string(),
+        )
     };
-    let h = match pick(|k| k.h) {
-        Some(h) => positive_dim(h, "h").map_err(&err)?,
-        None => img_h,
+    let w = match (pick(|k| k.w), img_size) {
+        (Some(w), _) => positive_dim(w, "w").map_err(&err)?,
+        (None, Some((img_w, _))) => img_w,
+        (None, None) => return Err(no_size()),
+    };
+    let h = match (pick(|k| k.h), img_size) {
+        (Some(h), _) => positive_dim(h, "h").map_err(&err)?,
+        (None, Some((_, img_h))) => img_h,
+        (None, None) => return Err(no_size()),
     };
     let (wf, hf) = (f64::from(w), f64::from(h));
     let focal_from_angle = |angle: f64, size: f64, key: &str| {
@@ -442,14 +531,18 @@ fn nerf_frame(
     let c2w = DMat3::from_cols(gl.x_axis, -gl.y_axis, -gl.z_axis);
     let centre = DVec3::new(m[0][3], m[1][3], m[2][3]);
     let name = image
+        .as_deref()
+        .unwrap_or(Path::new(&frame.file_path))
         .file_stem()
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_else(|| format!("frame_{index:03}"));
     let mut cam = camera_from_c2w(name, intr, c2w, centre)?;
-    if (cam.width, cam.height) != (img_w, img_h) {
+    if let Some((img_w, img_h)) = img_size
+        && (cam.width, cam.height) != (img_w, img_h)
+    {
         cam = rescale_to_image(&cam, img_w, img_h).map_err(&err)?;
     }
-    cam.image = Some(image);
+    cam.image = image;
     Ok(cam)
 }
 
@@ -1346,6 +1439,72 @@ mod tests {
         write_png(&dir.path().join("a.png"), 50, 50);
         let e = read_nerf_transforms(&path).expect_err("aspect").to_string();
         assert!(e.contains("aspect"), "{e}");
+    }
+
+    #[test]
+    fn uploaded_cameras_never_open_the_files_they_name() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        // A real image on the server, of another size than the JSON says.
+        let png = dir.path().join("a.png");
+        write_png(&png, 50, 40);
+        let identity = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 5], [0, 0, 0, 1]];
+        let with_size = json!({ "fl_x": 100.0, "w": 100, "h": 80, "frames": [{
+            "file_path": png.to_str().unwrap(), "transform_matrix": identity }] });
+        // The path reader follows file_path and rescales to the PNG; the bytes reader does not.
+        let path = dir.path().join("transforms.json");
+        write(&path, with_size.to_string());
+        assert_eq!(read_nerf_transforms(&path).expect("read")[0].width, 50);
+        let (kind, cams) =
+            read_cameras_bytes(with_size.to_string().as_bytes(), "t.json").expect("read");
+        assert_eq!(kind, CameraFormat::Nerf);
+        assert_eq!(
+            (
+                cams[0].width,
+                cams[0].height,
+                cams[0].fx,
+                cams[0].image.clone()
+            ),
+            (100, 80, 100.0, None)
+        );
+        assert_eq!(cams[0].name, "a");
+
+        // Without a size: one error, whatever the path names (an existing server file, a
+        // missing one, a folder above), and no path in it.
+        let without = |file_path: &str| {
+            let doc = json!({ "fl_x": 100.0, "frames": [{
+                "file_path": file_path, "transform_matrix": identity }] });
+            read_cameras_bytes(doc.to_string().as_bytes(), "t.json")
+                .expect_err("no size")
+                .to_string()
+        };
+        let e = without(png.to_str().unwrap());
+        assert!(e.contains("no image size"), "{e}");
+        assert!(!e.contains("a.png") && !e.contains('/'), "{e}");
+        for p in [
+            "/etc/passwd",
+            "../../etc/hostname",
+            "missing",
+            "/nonexistent/x.png",
+        ] {
+            assert_eq!(without(p), e, "{p}");
+        }
+
+        // INRIA and LLFF files read from bytes too; anything else is a typed error.
+        let cams = sample_cameras(true, true);
+        let (kind, read) =
+            read_cameras_bytes(inria_json(&cams).as_bytes(), "cameras.json").expect("inria");
+        assert_eq!((kind, read.len()), (CameraFormat::Inria, cams.len()));
+        let npy = npy_bytes(
+            &f8_header(&format!("({}, 17)", cams.len())),
+            &llff_rows(&cams),
+        );
+        let (kind, read) = read_cameras_bytes(&npy, "poses_bounds.npy").expect("llff");
+        assert_eq!((kind, read.len()), (CameraFormat::Llff, cams.len()));
+        assert!(read.iter().all(|c| c.image.is_none()));
+        assert!(matches!(
+            read_cameras_bytes(b"hello", "x"),
+            Err(SceneError::Camera(_))
+        ));
     }
 
     #[test]

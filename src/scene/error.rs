@@ -50,6 +50,8 @@ pub enum SceneError {
     Unsupported(String),
     #[error("corrupt data: {0}")]
     Corrupt(String),
+    #[error("corrupt data: the {0} does not match the data")]
+    Checksum(&'static str),
     #[error("inconsistent scene: {0}")]
     Inconsistent(String),
     #[error("bad camera file: {0}")]

@@ -24,12 +24,18 @@ use serde::{Deserialize, Serialize};
 use crate::scene::{Gaussians, SceneError, normalize_quat};
 
 /// A scene file format.
+///
+/// Its name ([`Format::as_str`], the serde name) is the one stored in the database
+/// (`assets.format`) and shown in the API and in `splatmark info`: `ply`, `compressed_ply`,
+/// `splat`, `spz`. [`Format::parse`] and serde also accept `compressedply`, the name earlier
+/// versions printed.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Format {
     /// INRIA 3D Gaussian Splatting PLY (`point_cloud.ply`), ascii or binary.
     Ply,
     /// SuperSplat / PlayCanvas compressed PLY (`*.compressed.ply`).
+    #[serde(rename = "compressed_ply", alias = "compressedply")]
     CompressedPly,
     /// antimatter15 `.splat` (32 bytes per Gaussian, no header).
     Splat,
@@ -38,13 +44,30 @@ pub enum Format {
 }
 
 impl Format {
-    /// The name used in JSON and logs (same as the serde name).
-    pub fn as_str(self) -> &'static str {
+    /// Every format, in the order of the table above.
+    pub const ALL: [Format; 4] = [
+        Format::Ply,
+        Format::CompressedPly,
+        Format::Splat,
+        Format::Spz,
+    ];
+
+    /// The canonical name, used in JSON, logs and the database (same as the serde name).
+    pub const fn as_str(self) -> &'static str {
         match self {
             Format::Ply => "ply",
-            Format::CompressedPly => "compressedply",
+            Format::CompressedPly => "compressed_ply",
             Format::Splat => "splat",
             Format::Spz => "spz",
+        }
+    }
+
+    /// The format a name denotes: the canonical [`Format::as_str`] names, and `compressedply`
+    /// (the name earlier versions printed) for [`Format::CompressedPly`].
+    pub fn parse(name: &str) -> Option<Format> {
+        match name {
+            "compressedply" => Some(Format::CompressedPly),
+            _ => Format::ALL.into_iter().find(|f| f.as_str() == name),
         }
     }
 
@@ -324,8 +347,17 @@ mod tests {
         assert_eq!(serde_json::to_string(&Format::Ply).unwrap(), "\"ply\"");
         assert_eq!(
             serde_json::to_string(&Format::CompressedPly).unwrap(),
-            "\"compressedply\""
+            "\"compressed_ply\""
         );
+        // The name earlier versions wrote is still read.
+        assert_eq!(
+            serde_json::from_str::<Format>("\"compressedply\"").unwrap(),
+            Format::CompressedPly
+        );
+        assert_eq!(Format::parse("compressedply"), Some(Format::CompressedPly));
+        assert_eq!(Format::parse("compressed_ply"), Some(Format::CompressedPly));
+        assert_eq!(Format::parse("PLY"), None);
+        assert_eq!(Format::parse(""), None);
         assert_eq!(serde_json::to_string(&Format::Splat).unwrap(), "\"splat\"");
         assert_eq!(serde_json::to_string(&Format::Spz).unwrap(), "\"spz\"");
         for f in [
@@ -337,6 +369,7 @@ mod tests {
             let s = serde_json::to_string(&f).unwrap();
             assert_eq!(s, format!("\"{}\"", f.as_str()));
             assert_eq!(serde_json::from_str::<Format>(&s).unwrap(), f);
+            assert_eq!(Format::parse(f.as_str()), Some(f));
         }
     }
 

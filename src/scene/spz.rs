@@ -25,7 +25,10 @@
 //!
 //! Decompression is capped at the size the header's point count implies, after that count has
 //! been checked against [`Limits`]; buffers grow with the data actually decompressed, so a tiny
-//! file claiming many points cannot force a large allocation.
+//! file claiming many points cannot force a large allocation. A legacy stream is then read to
+//! its end, so that its container's checksum is verified (gzip's CRC-32 and length, zstd's
+//! content checksum when the frame has one: a mismatch is [`SceneError::Checksum`]); at most
+//! [`MAX_TRAILING_BYTES`] may follow the arrays there.
 
 use std::io::Read;
 
@@ -40,6 +43,10 @@ pub const MAX_FRACTIONAL_BITS: u8 = 24;
 pub const LEGACY_HEADER_BYTES: usize = 16;
 /// Size of the v4 header.
 pub const V4_HEADER_BYTES: usize = 32;
+/// Most decompressed bytes a legacy stream may hold after its arrays (extension records of
+/// newer writers, ignored). They are decompressed, without being kept, only to reach the
+/// checksum at the end of the container.
+pub const MAX_TRAILING_BYTES: u64 = 1 << 20;
 
 const FLIP_P: [f32; 3] = [1.0, -1.0, -1.0];
 /// `coordinateConverter(RUB, RDF).flipSh` for the 15 coefficients of degrees 1–3
@@ -139,6 +146,23 @@ fn corrupt_io(what: &str, e: std::io::Error) -> SceneError {
     SceneError::Corrupt(format!("{what}: {e}"))
 }
 
+/// An error at the end of a compressed stream: a checksum mismatch (flate2's and zstd's
+/// messages both name the checksum) or a missing trailer.
+fn end_of_stream_error(what: &str, e: std::io::Error) -> SceneError {
+    let text = e.to_string();
+    match what {
+        _ if !text.contains("checksum") => match e.kind() {
+            std::io::ErrorKind::UnexpectedEof => SceneError::Corrupt(format!(
+                "the {what} stream ends before its trailer (the file is truncated)"
+            )),
+            _ => corrupt_io(what, e),
+        },
+        "gzip" => SceneError::Checksum("gzip CRC-32 or length"),
+        "zstd" => SceneError::Checksum("zstd content checksum"),
+        _ => SceneError::Checksum("stream checksum"),
+    }
+}
+
 /// Reads until `buf` is full or the stream ends; returns how many bytes were read.
 fn read_full(r: &mut impl Read, buf: &mut [u8], what: &str) -> Result<usize, SceneError> {
     let mut got = 0;
@@ -223,7 +247,18 @@ fn read_legacy<R: Read>(mut r: R, limits: &Limits, what: &str) -> Result<Gaussia
             actual: (LEGACY_HEADER_BYTES + payload.len()) as u64,
         });
     }
-    // Trailing data (extension records of newer writers) is ignored.
+    // Trailing data (extension records of newer writers) is ignored, but read (bounded) to the
+    // end of the stream, where the decompressor checks the container's checksum.
+    let trailing = std::io::copy(
+        &mut r.by_ref().take(MAX_TRAILING_BYTES + 1),
+        &mut std::io::sink(),
+    )
+    .map_err(|e| end_of_stream_error(what, e))?;
+    if trailing > MAX_TRAILING_BYTES {
+        return Err(SceneError::Corrupt(format!(
+            "more than {MAX_TRAILING_BYTES} bytes follow the spz arrays in the {what} stream"
+        )));
+    }
     let mut streams: [&[u8]; 6] = [&[]; 6];
     let mut off = 0;
     for (s, &len) in streams.iter_mut().zip(&plan.sizes) {
@@ -705,16 +740,23 @@ mod tests {
 
     #[test]
     fn decompression_bombs_are_capped() {
-        // gzip: 5 points declared, followed by 64 MiB of zeros. Only the 5 points' bytes are
-        // decompressed.
+        // gzip: 5 points declared, followed by 64 MiB of zeros. Only the 5 points' bytes and
+        // MAX_TRAILING_BYTES + 1 more are decompressed before the file is refused.
         let g = scene(5, 0, 2);
         let mut raw = legacy_bytes(&g, 3, true);
-        raw.resize(raw.len() + (64 << 20), 0);
+        let arrays = raw.len();
+        raw.resize(arrays + (64 << 20), 0);
         let bomb = gzip(&raw);
         assert!(bomb.len() < 200_000);
-        let d = read_spz(&bomb).unwrap();
-        assert_eq!(d.len(), 5);
-
+        let e = read_spz(&bomb).unwrap_err();
+        assert!(
+            matches!(&e, SceneError::Corrupt(m) if m.contains("follow the spz arrays")),
+            "{e}"
+        );
+        // Up to MAX_TRAILING_BYTES of trailing data (extension records) are still accepted.
+        let mut ok = raw[..arrays].to_vec();
+        ok.resize(arrays + MAX_TRAILING_BYTES as usize, 7);
+        assert_eq!(read_spz(&gzip(&ok)).unwrap().len(), 5);
         // v4: a stream whose TOC says 45 bytes but which decompresses to 64 MiB.
         let arrays: Vec<Vec<u8>> = pack(&g, 4, true)
             .into_iter()
@@ -734,7 +776,49 @@ mod tests {
 
         // A zstd-wrapped legacy stream with trailing zeros: capped too.
         let z = zstd::bulk::compress(&raw, 3).unwrap();
+        let e = read_spz(&z).unwrap_err();
+        assert!(matches!(e, SceneError::Corrupt(_)), "{e}");
+        let z = zstd::bulk::compress(&ok, 3).unwrap();
         assert_eq!(read_spz(&z).unwrap().len(), 5);
+    }
+
+    #[test]
+    fn container_checksums_are_verified() {
+        let g = scene(50, 1, 5);
+        let raw = legacy_bytes(&g, 3, true);
+        let gz = gzip(&raw);
+        check_close(&read_spz(&gz).unwrap(), &g, 0.9999);
+        // gzip ends with CRC-32 (4 bytes) and the length mod 2^32 (4 bytes).
+        let n = gz.len();
+        for at in [n - 8, n - 5, n - 4, n - 1] {
+            let mut bad = gz.clone();
+            bad[at] ^= 0x01;
+            let e = read_spz(&bad).unwrap_err();
+            assert!(
+                matches!(e, SceneError::Checksum("gzip CRC-32 or length")),
+                "byte {at}: {e}"
+            );
+            assert!(e.to_string().contains("does not match"), "{e}");
+        }
+        // A missing trailer is refused too.
+        for cut in [1, 4, 8] {
+            let e = read_spz(&gz[..n - cut]).unwrap_err();
+            assert!(matches!(e, SceneError::Corrupt(_)), "cut {cut}: {e}");
+        }
+        // zstd frames with a content checksum.
+        let mut enc = zstd::stream::write::Encoder::new(Vec::new(), 3).unwrap();
+        enc.include_checksum(true).unwrap();
+        enc.write_all(&raw).unwrap();
+        let z = enc.finish().unwrap();
+        check_close(&read_spz(&z).unwrap(), &g, 0.9999);
+        let mut bad = z.clone();
+        let last = bad.len() - 1;
+        bad[last] ^= 0x01;
+        let e = read_spz(&bad).unwrap_err();
+        assert!(
+            matches!(e, SceneError::Checksum("zstd content checksum")),
+            "{e}"
+        );
     }
 
     #[test]

@@ -1,6 +1,7 @@
 //! Bearer API keys. A token is `smk_` + 64 hex digits (32 random bytes); only its SHA-256 is
 //! stored, so the token is shown once, at creation.
 
+use super::audit::{self, AuditEntry};
 use super::crypto::fill_random;
 use super::error::{Result, StoreError};
 use super::{Store, parse_uuid, time, to_u64};
@@ -153,19 +154,32 @@ impl Store {
         rows.iter().map(decode_key).collect()
     }
 
-    /// Revokes a key (idempotent); `NotFound` when unknown.
-    pub async fn revoke_api_key(&self, id: Uuid) -> Result<()> {
+    /// Revokes a key and appends `audit_entry` in the same transaction. Idempotent: revoking a
+    /// key that is already revoked changes nothing and appends no audit row (`Ok(false)`; the
+    /// first revocation's time and row stand). `NotFound` when unknown.
+    pub async fn revoke_api_key(&self, id: Uuid, audit_entry: AuditEntry) -> Result<bool> {
         let id = id.to_string();
+        let mut tx = self.begin_immediate().await?;
         let res =
-            sqlx::query("UPDATE api_keys SET revoked_at = COALESCE(revoked_at, ?) WHERE id = ?")
+            sqlx::query("UPDATE api_keys SET revoked_at = ? WHERE id = ? AND revoked_at IS NULL")
                 .bind(time::now())
                 .bind(&id)
-                .execute(&self.pool)
+                .execute(&mut *tx)
                 .await?;
         if res.rows_affected() == 0 {
-            return Err(StoreError::NotFound);
+            let known: Option<i64> = sqlx::query_scalar("SELECT 1 FROM api_keys WHERE id = ?")
+                .bind(&id)
+                .fetch_optional(&mut *tx)
+                .await?;
+            tx.rollback().await?;
+            return match known {
+                Some(_) => Ok(false),
+                None => Err(StoreError::NotFound),
+            };
         }
-        Ok(())
+        audit::append_in(&mut tx, &audit_entry).await?;
+        tx.commit().await?;
+        Ok(true)
     }
 }
 

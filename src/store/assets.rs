@@ -1,16 +1,23 @@
 //! Assets: uploaded originals and the watermarked scenes published from them.
 
 use super::audit::{self, AuditEntry};
-use super::blobs::{BlobRef, is_blob_id};
+use super::blobs::{BlobRef, PinnedBlob, is_blob_id};
 use super::error::{Result, StoreError};
 use super::{Store, parse_opt_uuid, parse_uuid, time, to_i64, to_u64};
+use crate::scene::Format;
 use serde::{Deserialize, Serialize};
 use sqlx::Row;
 use sqlx::sqlite::{SqliteConnection, SqliteRow};
 use uuid::Uuid;
 
-/// Scene formats an asset may have.
-pub const SCENE_FORMATS: [&str; 4] = ["ply", "splat", "spz", "compressed_ply"];
+/// Scene formats an asset may have: the scene reader's names ([`Format::as_str`]), so that what
+/// the reader detects is always what the database accepts.
+pub const SCENE_FORMATS: [&str; 4] = [
+    Format::ALL[0].as_str(),
+    Format::ALL[1].as_str(),
+    Format::ALL[2].as_str(),
+    Format::ALL[3].as_str(),
+];
 const MAX_NAME: usize = 255;
 
 /// Whether an asset was uploaded or made by watermarking.
@@ -52,7 +59,8 @@ pub struct NewAsset {
     pub source_job_id: Option<Uuid>,
     /// The scene file.
     pub blob: BlobRef,
-    /// "ply", "splat", "spz" or "compressed_ply".
+    /// "ply", "compressed_ply", "splat" or "spz" ([`Format::as_str`]; [`Format::parse`]'s other
+    /// spellings are accepted and stored under the canonical name).
     pub format: String,
     /// The name the owner gave the file (shown back, never used as a path).
     pub file_name: Option<String>,
@@ -116,7 +124,7 @@ impl Store {
             let mut removed = Vec::new();
             for (id, path, size, age) in blobs.list()? {
                 report.scanned += 1;
-                if referenced.contains(&id) || age < min_age {
+                if referenced.contains(&id) || age < min_age || blobs.is_pinned(&id) {
                     continue;
                 }
                 match std::fs::remove_file(&path) {
@@ -142,6 +150,42 @@ impl Store {
             self.append_audit(entry).await?;
         }
         Ok(report)
+    }
+
+    /// Removes the blobs an operation committed for a row it then failed to write (a rejected
+    /// upload), so that a failed request leaves nothing on disk: each pinned blob that no asset
+    /// references and that no other pin holds (a concurrent upload of the same bytes) is deleted.
+    /// Runs under the database's write lock, so no row referencing the blob can be written
+    /// meanwhile. Returns how many blobs were removed.
+    pub async fn discard_unreferenced(&self, pins: Vec<PinnedBlob>) -> Result<u64> {
+        if pins.is_empty() {
+            return Ok(0);
+        }
+        // The same bytes may be pinned twice by the caller (scene and cameras alike).
+        let mut own = std::collections::HashMap::<&str, usize>::new();
+        for pin in &pins {
+            *own.entry(pin.blob().sha256.as_str()).or_default() += 1;
+        }
+        let mut tx = self.begin_immediate().await?;
+        let mut removed = 0;
+        for (i, pin) in pins.iter().enumerate() {
+            let id = &pin.blob().sha256;
+            if pins[..i].iter().any(|p| &p.blob().sha256 == id) {
+                continue;
+            }
+            let used: i64 = sqlx::query_scalar(
+                "SELECT COUNT(*) FROM assets WHERE sha256 = ? OR cameras_sha256 = ?",
+            )
+            .bind(id)
+            .bind(id)
+            .fetch_one(&mut *tx)
+            .await?;
+            if used == 0 && self.blobs().remove_if_only_pin(pin, own[id.as_str()])? {
+                removed += 1;
+            }
+        }
+        tx.rollback().await?;
+        Ok(removed)
     }
 
     /// Inserts an asset and its audit row (`asset_id` filled in when `None`) in one transaction.
@@ -188,10 +232,11 @@ impl Store {
                 "owner must be 1..=255 bytes, no control characters",
             ));
         }
-        if !SCENE_FORMATS.contains(&a.format.as_str()) {
+        if Format::parse(&a.format).is_none() {
             return Err(StoreError::invalid(format!(
-                "unknown scene format {:?}",
-                a.format
+                "unknown scene format {:?} (expected one of {})",
+                a.format,
+                SCENE_FORMATS.join(", ")
             )));
         }
         if let Some(n) = &a.file_name
@@ -268,7 +313,8 @@ pub(crate) async fn insert_in(conn: &mut SqliteConnection, a: &NewAsset) -> Resu
         source_job_id: a.source_job_id,
         sha256: a.blob.sha256.clone(),
         size: a.blob.size,
-        format: a.format.clone(),
+        format: Format::parse(&a.format)
+            .map_or_else(|| a.format.clone(), |f| f.as_str().to_string()),
         file_name: a.file_name.clone(),
         gaussians: a.gaussians,
         sh_degree: a.sh_degree,

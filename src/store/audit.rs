@@ -268,20 +268,13 @@ fn validate_field(name: &str, v: &str) -> Result<()> {
     Ok(())
 }
 
-/// Accepts `YYYY-MM-DDTHH:MM:SS.mmmZ` as is and `YYYY-MM-DDTHH:MM:SSZ` as `.000Z`.
+/// A `since`/`until` filter in the stored form ([`time::normalize_timestamp`]).
 fn normalize_time(s: &str) -> Result<String> {
-    if time::is_timestamp(s) {
-        return Ok(s.to_owned());
-    }
-    if s.len() == 20 && s.ends_with('Z') {
-        let t = format!("{}.000Z", &s[..19]);
-        if time::is_timestamp(&t) {
-            return Ok(t);
-        }
-    }
-    Err(StoreError::invalid(
-        "times must be RFC 3339 UTC like 2026-12-01T16:09:21Z or 2026-12-01T16:09:21.123Z",
-    ))
+    time::normalize_timestamp(s).ok_or_else(|| {
+        StoreError::invalid(
+            "times must be RFC 3339 UTC like 2026-12-01T16:09:21Z or 2026-12-01T16:09:21.123Z",
+        )
+    })
 }
 
 /// `sha256(prev_hash || canonical bytes)`; strings are length-prefixed (u64 big-endian), options

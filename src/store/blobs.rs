@@ -4,9 +4,11 @@
 use super::error::{Result, StoreError};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
+use std::collections::HashMap;
 use std::fs::{self, File};
 use std::io::{self, Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex, PoisonError};
 
 /// A committed blob: its id (lowercase hex SHA-256) and size in bytes.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -21,6 +23,37 @@ pub struct BlobRef {
 #[derive(Clone, Debug)]
 pub struct BlobStore {
     root: PathBuf,
+    /// How many [`PinnedBlob`]s of this process hold each blob id.
+    pins: Arc<Mutex<HashMap<String, usize>>>,
+}
+
+/// A blob committed by [`BlobStore::commit_pinned`] for a row that is not written yet. While it
+/// lives, the garbage collector leaves the blob alone, and so does
+/// [`super::Store::discard_unreferenced`] when another pin holds the same blob (two uploads of
+/// the same bytes). Dropping it unpins.
+#[derive(Debug)]
+pub struct PinnedBlob {
+    blob: BlobRef,
+    pins: Arc<Mutex<HashMap<String, usize>>>,
+}
+
+impl PinnedBlob {
+    /// The committed blob.
+    pub fn blob(&self) -> &BlobRef {
+        &self.blob
+    }
+}
+
+impl Drop for PinnedBlob {
+    fn drop(&mut self) {
+        let mut pins = self.pins.lock().unwrap_or_else(PoisonError::into_inner);
+        if let Some(n) = pins.get_mut(&self.blob.sha256) {
+            *n -= 1;
+            if *n == 0 {
+                pins.remove(&self.blob.sha256);
+            }
+        }
+    }
 }
 
 impl BlobStore {
@@ -41,7 +74,10 @@ impl BlobStore {
                 tracing::warn!(path = %e.path().display(), %err, "could not remove a stale temp file");
             }
         }
-        Ok(BlobStore { root })
+        Ok(BlobStore {
+            root,
+            pins: Arc::default(),
+        })
     }
 
     /// A new temporary file in `blobs/tmp` (same file system as the blobs, so [`Self::commit`]
@@ -55,6 +91,16 @@ impl BlobStore {
     pub fn commit(&self, mut tmp: tempfile::NamedTempFile) -> io::Result<BlobRef> {
         tmp.as_file_mut().flush()?;
         let (sha256, size) = hash_file(tmp.as_file_mut())?;
+        self.place(tmp, sha256, size)
+    }
+
+    /// Moves a hashed temp file to its content address (see [`Self::commit`]).
+    fn place(
+        &self,
+        tmp: tempfile::NamedTempFile,
+        sha256: String,
+        size: u64,
+    ) -> io::Result<BlobRef> {
         let dest = self.location(&sha256);
         // An existing file of another size is a truncated leftover: replaced below. An existing
         // complete one is touched, so the garbage collector's age rule sees it as new until the
@@ -72,6 +118,58 @@ impl BlobStore {
         tmp.persist(&dest).map_err(|e| e.error)?;
         sync_dir(&dir)?;
         Ok(BlobRef { sha256, size })
+    }
+
+    /// [`Self::commit`], pinning the blob (see [`PinnedBlob`]) before it is renamed into place, so
+    /// that a concurrent [`Self::remove_if_only_pin`] of the same bytes cannot remove it under us.
+    pub fn commit_pinned(&self, mut tmp: tempfile::NamedTempFile) -> io::Result<PinnedBlob> {
+        tmp.as_file_mut().flush()?;
+        let (sha256, size) = hash_file(tmp.as_file_mut())?;
+        *self
+            .pins
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .entry(sha256.clone())
+            .or_default() += 1;
+        // Unpinned again by the drop if placing fails.
+        let pin = PinnedBlob {
+            blob: BlobRef {
+                sha256: sha256.clone(),
+                size,
+            },
+            pins: self.pins.clone(),
+        };
+        self.place(tmp, sha256, size)?;
+        Ok(pin)
+    }
+
+    /// Whether a [`PinnedBlob`] of this process holds blob `sha256`.
+    pub(crate) fn is_pinned(&self, sha256: &str) -> bool {
+        self.pins
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .contains_key(sha256)
+    }
+
+    /// Removes `pin`'s blob file unless pins other than the caller's `own` ones hold it too;
+    /// `Ok(true)` when removed. The caller has checked that no row references the blob (and holds
+    /// the database's write lock, so that none can be written meanwhile).
+    pub(crate) fn remove_if_only_pin(&self, pin: &PinnedBlob, own: usize) -> io::Result<bool> {
+        let pins = self.pins.lock().unwrap_or_else(PoisonError::into_inner);
+        if pins.get(&pin.blob.sha256).copied().unwrap_or(0) > own {
+            return Ok(false);
+        }
+        let path = self.location(&pin.blob.sha256);
+        match fs::remove_file(&path) {
+            Ok(()) => {
+                if let Some(dir) = path.parent() {
+                    sync_dir(dir)?;
+                }
+                Ok(true)
+            }
+            Err(e) if e.kind() == io::ErrorKind::NotFound => Ok(false),
+            Err(e) => Err(e),
+        }
     }
 
     /// Stores `bytes` (temp file + fsync + rename).

@@ -37,7 +37,7 @@ pub use api_keys::{ApiKey, Scope, TOKEN_PREFIX};
 pub use assets::{Asset, AssetKind, GcReport, NewAsset};
 pub use attribution::{AttributionSummary, MAX_ATTRIBUTION_PAGE};
 pub use audit::{AuditEntry, AuditFilter, AuditRow, ChainReport, GENESIS_HASH, MAX_AUDIT_PAGE};
-pub use blobs::{BlobRef, BlobStore};
+pub use blobs::{BlobRef, BlobStore, PinnedBlob};
 pub use crypto::{MASTER_KEY_ENV, MasterKey};
 pub use error::{Result, StoreError};
 pub use jobs::{
@@ -45,6 +45,7 @@ pub use jobs::{
     ProgressUpdate, backoff,
 };
 pub use keys::{MAX_MESSAGE_BITS, WatermarkKey};
+pub use time::normalize_timestamp;
 pub use verifications::NewVerification;
 
 use serde::Serialize;
@@ -104,6 +105,7 @@ impl Store {
     pub async fn open(data_dir: &Path, master: MasterKey) -> Result<Store> {
         std::fs::create_dir_all(data_dir)?;
         let blobs = BlobStore::open(data_dir.join(BLOB_DIR))?;
+        make_private(&data_dir.join(DB_FILE))?;
         let options = SqliteConnectOptions::new()
             .filename(data_dir.join(DB_FILE))
             .create_if_missing(true)
@@ -213,6 +215,49 @@ impl Store {
         }
         Ok(())
     }
+}
+
+/// Creates the database file readable and writable by its owner only (0600: it holds the sealed
+/// messages and the audit evidence), empty — SQLite initialises an empty file as a new database —
+/// so that it never exists with wider permissions. SQLite creates the `-wal` and `-shm` files
+/// with the database file's mode. An existing database (or `-wal`/`-shm`) that group or others
+/// may access, as earlier versions created it, is restricted to its owner, with a log line.
+fn make_private(db: &Path) -> std::io::Result<()> {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::{OpenOptionsExt, PermissionsExt};
+        match std::fs::OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .mode(0o600)
+            .open(db)
+        {
+            Ok(_) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {}
+            Err(e) => return Err(e),
+        }
+        let mut wal = db.as_os_str().to_owned();
+        wal.push("-wal");
+        let mut shm = db.as_os_str().to_owned();
+        shm.push("-shm");
+        for file in [db.to_path_buf(), wal.into(), shm.into()] {
+            let mode = match std::fs::metadata(&file) {
+                Ok(m) => m.permissions().mode(),
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
+                Err(e) => return Err(e),
+            };
+            if mode & 0o077 != 0 {
+                std::fs::set_permissions(&file, std::fs::Permissions::from_mode(mode & 0o700))?;
+                tracing::warn!(
+                    path = %file.display(),
+                    "the database was readable by group or others; restricted it to its owner"
+                );
+            }
+        }
+    }
+    #[cfg(not(unix))]
+    let _ = db;
+    Ok(())
 }
 
 /// A non-negative SQLite integer as `u64`.

@@ -267,6 +267,63 @@ fn age_blob(store: &Store, id: &str, age: Duration) {
         .expect("set mtime");
 }
 
+fn pinned(store: &Store, bytes: &[u8]) -> PinnedBlob {
+    let mut tmp = store.blobs().temp_file().expect("temp");
+    std::io::Write::write_all(&mut tmp, bytes).expect("write");
+    store.blobs().commit_pinned(tmp).expect("commit")
+}
+
+#[tokio::test]
+async fn a_failed_insert_discards_its_blobs_but_not_anyone_elses() {
+    let (_dir, store) = setup().await;
+    let kept = original(&store).await;
+
+    // Unreferenced and pinned by the caller alone (twice: scene and cameras alike): removed.
+    let a = pinned(&store, b"a rejected upload");
+    let a2 = pinned(&store, b"a rejected upload");
+    let b = pinned(&store, b"its cameras");
+    let (ida, idb) = (a.blob().sha256.clone(), b.blob().sha256.clone());
+    assert!(store.blobs().is_pinned(&ida));
+    assert_eq!(
+        store
+            .discard_unreferenced(vec![a, a2, b])
+            .await
+            .expect("discard"),
+        2
+    );
+    for id in [&ida, &idb] {
+        assert!(matches!(store.blobs().path(id), Err(StoreError::NotFound)));
+        assert!(!store.blobs().is_pinned(id));
+    }
+
+    // Referenced by an asset: kept.
+    let c = pinned(&store, b"original scene bytes");
+    assert_eq!(c.blob().sha256, kept.sha256);
+    assert_eq!(
+        store.discard_unreferenced(vec![c]).await.expect("discard"),
+        0
+    );
+    store.blobs().path(&kept.sha256).expect("kept");
+
+    // Pinned by a concurrent upload of the same bytes too: kept for it, and the garbage
+    // collector leaves it alone while it is pinned, however old.
+    let d = pinned(&store, b"uploaded twice at once");
+    let other = pinned(&store, b"uploaded twice at once");
+    let id = d.blob().sha256.clone();
+    assert_eq!(
+        store.discard_unreferenced(vec![d]).await.expect("discard"),
+        0
+    );
+    store
+        .blobs()
+        .path(&id)
+        .expect("still there for the other upload");
+    age_blob(&store, &id, Duration::from_secs(7 * 24 * 3600));
+    assert_eq!(store.collect_garbage(LONG).await.expect("gc").removed, 0);
+    drop(other);
+    assert_eq!(store.collect_garbage(LONG).await.expect("gc").removed, 1);
+}
+
 #[tokio::test]
 async fn garbage_collection_removes_old_unreferenced_blobs_only() {
     let (dir, store) = setup().await;
@@ -1545,13 +1602,48 @@ async fn api_keys_authenticate_revoke_and_store_only_the_hash() {
     assert_eq!("auditor".parse::<Scope>().expect("scope"), Scope::Auditor);
     assert!("root".parse::<Scope>().is_err());
     assert!(store.create_api_key("x", &[]).await.is_err());
-    store.revoke_api_key(key.id).await.expect("revoke");
-    store.revoke_api_key(key.id).await.expect("revoke again");
+    let audited = || async {
+        scalar(
+            &dir,
+            "SELECT COUNT(*) FROM audit WHERE action = 'key.revoke'",
+        )
+        .await
+    };
+    assert!(
+        store
+            .revoke_api_key(key.id, entry("key.revoke"))
+            .await
+            .expect("revoke")
+    );
+    assert_eq!(audited().await, 1);
+    let revoked_at = || async {
+        let mut c = raw(&dir).await;
+        sqlx::query_scalar::<_, String>("SELECT revoked_at FROM api_keys")
+            .fetch_one(&mut c)
+            .await
+            .expect("revoked_at")
+    };
+    let first = revoked_at().await;
+    // Again: nothing changes, no second audit row.
+    for _ in 0..3 {
+        assert!(
+            !store
+                .revoke_api_key(key.id, entry("key.revoke"))
+                .await
+                .expect("revoke again")
+        );
+    }
+    assert_eq!(audited().await, 1);
+    assert_eq!(revoked_at().await, first);
     assert_eq!(store.authenticate(&token).await.expect("auth"), None);
     assert!(matches!(
-        store.revoke_api_key(Uuid::new_v4()).await,
+        store
+            .revoke_api_key(Uuid::new_v4(), entry("key.revoke"))
+            .await,
         Err(StoreError::NotFound)
     ));
+    assert_eq!(audited().await, 1);
+    assert!(store.verify_audit_chain().await.expect("chain").ok);
     assert_eq!(store.api_key_count().await.expect("count"), 1);
     assert!(store.list_api_keys().await.expect("list")[0].revoked);
 }
@@ -1577,4 +1669,44 @@ async fn database_uses_wal_and_foreign_keys() {
         .expect("busy");
     assert_eq!(busy, 5000);
     store.ping().await.expect("ping");
+}
+
+#[cfg(unix)]
+#[tokio::test]
+async fn the_database_is_readable_by_its_owner_only() {
+    use std::os::unix::fs::PermissionsExt;
+    let mode =
+        |p: &std::path::Path| std::fs::metadata(p).expect("meta").permissions().mode() & 0o777;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let master = MasterKey::generate().to_hex();
+    async fn open(dir: &std::path::Path, master: &str) -> Store {
+        Store::open(dir, MasterKey::from_hex(master).expect("key"))
+            .await
+            .expect("open")
+    }
+    let store = open(dir.path(), &master).await;
+    // A write, so that the -wal and -shm files exist.
+    store.append_audit(entry("test")).await.expect("audit");
+    let db = dir.path().join(DB_FILE);
+    let wal = dir.path().join(format!("{DB_FILE}-wal"));
+    let shm = dir.path().join(format!("{DB_FILE}-shm"));
+    for p in [&db, &wal, &shm] {
+        assert_eq!(mode(p), 0o600, "{}", p.display());
+    }
+    store.close().await;
+
+    // A database created world-readable by an earlier version is restricted when opened.
+    for p in [&db, &wal, &shm] {
+        if p.exists() {
+            std::fs::set_permissions(p, std::fs::Permissions::from_mode(0o644)).expect("chmod");
+        }
+    }
+    let store = open(dir.path(), &master).await;
+    store.ping().await.expect("ping");
+    assert_eq!(mode(&db), 0o600);
+    for p in [&wal, &shm] {
+        if p.exists() {
+            assert_eq!(mode(p), 0o600, "{}", p.display());
+        }
+    }
 }

@@ -47,7 +47,8 @@ fn civil_from_days(z: i64) -> (i64, u32, u32) {
     (y, m, d)
 }
 
-/// Whether `s` has exactly the shape [`format_millis`] produces (used to validate filters).
+/// Whether `s` is a time as [`format_millis`] writes it: that exact shape, and a real instant
+/// (month 01–12, a day the month has, 00:00:00.000–23:59:59.999).
 pub(crate) fn is_timestamp(s: &str) -> bool {
     let b = s.as_bytes();
     b.len() == 24
@@ -59,6 +60,41 @@ pub(crate) fn is_timestamp(s: &str) -> bool {
             23 => c == b'Z',
             _ => c.is_ascii_digit(),
         })
+        && in_calendar(b)
+}
+
+/// The date and time fields of a string of [`is_timestamp`]'s shape are in range.
+fn in_calendar(b: &[u8]) -> bool {
+    let num =
+        |r: std::ops::Range<usize>| b[r].iter().fold(0u32, |n, &c| n * 10 + u32::from(c - b'0'));
+    let (y, m, d) = (num(0..4), num(5..7), num(8..10));
+    let leap = (y % 4 == 0 && y % 100 != 0) || y % 400 == 0;
+    let days = match m {
+        1 | 3 | 5 | 7 | 8 | 10 | 12 => 31,
+        4 | 6 | 9 | 11 => 30,
+        2 if leap => 29,
+        2 => 28,
+        _ => return false,
+    };
+    (1..=days).contains(&d) && num(11..13) < 24 && num(14..16) < 60 && num(17..19) < 60
+}
+
+/// A time filter as a client may write it — RFC 3339 UTC, `YYYY-MM-DDTHH:MM:SSZ` or with 1 to 3
+/// fraction digits (`…:SS.1Z`, `…:SS.123Z`) — in the stored form (`.mmm`), so that it compares
+/// with stored times as a string. `None` for anything else, including impossible dates and times
+/// (`2026-99-99T99:99:99Z`, February 30th, a leap second, which stored times never have).
+pub fn normalize_timestamp(s: &str) -> Option<String> {
+    let body = s.strip_suffix('Z')?;
+    let (head, frac) = match body.split_once('.') {
+        Some((head, frac)) if !frac.is_empty() => (head, frac),
+        Some(_) => return None,
+        None => (body, ""),
+    };
+    if head.len() != 19 || frac.len() > 3 || !frac.bytes().all(|c| c.is_ascii_digit()) {
+        return None;
+    }
+    let t = format!("{head}.{frac:0<3}Z");
+    is_timestamp(&t).then_some(t)
 }
 
 #[cfg(test)]
@@ -72,6 +108,46 @@ mod tests {
         assert_eq!(format_millis(1_798_761_599_999), "2026-12-31T23:59:59.999Z");
         assert!(is_timestamp(&now()));
         assert!(!is_timestamp("2026-12-31 23:59:59.999Z"));
+        assert!(!is_timestamp("2026-99-99T99:99:99.000Z"));
+    }
+
+    #[test]
+    fn filters_are_checked_against_the_calendar() {
+        for (given, stored) in [
+            ("2026-12-01T16:09:21Z", "2026-12-01T16:09:21.000Z"),
+            ("2026-12-01T16:09:21.1Z", "2026-12-01T16:09:21.100Z"),
+            ("2026-12-01T16:09:21.123Z", "2026-12-01T16:09:21.123Z"),
+            ("2024-02-29T23:59:59Z", "2024-02-29T23:59:59.000Z"),
+            ("2000-02-29T00:00:00Z", "2000-02-29T00:00:00.000Z"),
+        ] {
+            assert_eq!(
+                normalize_timestamp(given).as_deref(),
+                Some(stored),
+                "{given}"
+            );
+        }
+        for bad in [
+            "2026-99-99T99:99:99Z",
+            "2026-13-01T00:00:00Z",
+            "2026-00-01T00:00:00Z",
+            "2026-04-31T00:00:00Z",
+            "2026-02-29T00:00:00Z",
+            "1900-02-29T00:00:00Z",
+            "2026-12-00T00:00:00Z",
+            "2026-12-01T24:00:00Z",
+            "2026-12-01T23:60:00Z",
+            "2026-12-31T23:59:60Z",
+            "2026-12-01T16:09:21.1234Z",
+            "2026-12-01T16:09:21.Z",
+            "2026-12-01T16:09:21",
+            "2026-12-01",
+            "2026-12-01T16:09:21+01:00",
+            "+2026-12-01T16:09:21Z",
+            "yesterday",
+            "",
+        ] {
+            assert_eq!(normalize_timestamp(bad), None, "{bad}");
+        }
         assert!(now() < after(Duration::from_millis(5)));
     }
 }
