@@ -586,8 +586,20 @@ impl RouteMomentum {
         };
         for i in (0..g.len()).filter(|&i| on[i]) {
             let [lm, ldc, lrest, lo, lr, ls] = rates(i);
-            upd(&mut g.means[i], &grad.means[i], &mut self.m.means[i], lm, denom[0]);
-            upd(&mut g.sh_dc[i], &grad.sh_dc[i], &mut self.m.sh_dc[i], ldc, denom[1]);
+            upd(
+                &mut g.means[i],
+                &grad.means[i],
+                &mut self.m.means[i],
+                lm,
+                denom[0],
+            );
+            upd(
+                &mut g.sh_dc[i],
+                &grad.sh_dc[i],
+                &mut self.m.sh_dc[i],
+                ldc,
+                denom[1],
+            );
             upd(
                 &mut g.sh_rest[i * rl..(i + 1) * rl],
                 &grad.sh_rest[i * rl..(i + 1) * rl],
@@ -602,8 +614,20 @@ impl RouteMomentum {
                 lo,
                 denom[3],
             );
-            upd(&mut g.rotations[i], &grad.rotations[i], &mut self.m.rotations[i], lr, denom[4]);
-            upd(&mut g.log_scales[i], &grad.log_scales[i], &mut self.m.log_scales[i], ls, denom[5]);
+            upd(
+                &mut g.rotations[i],
+                &grad.rotations[i],
+                &mut self.m.rotations[i],
+                lr,
+                denom[4],
+            );
+            upd(
+                &mut g.log_scales[i],
+                &grad.log_scales[i],
+                &mut self.m.log_scales[i],
+                ls,
+                denom[5],
+            );
             let q = g.rotations[i];
             let n = q.iter().map(|v| v * v).sum::<f32>().sqrt();
             if lr != 0.0 && n > 1e-12 && n.is_finite() {
@@ -611,6 +635,27 @@ impl RouteMomentum {
             }
         }
     }
+}
+
+/// PSNR (dB) of `g`'s renders of every view against the targets (pixels clamped to [0, 1],
+/// one MSE over all views).
+fn views_psnr(g: &Gaussians, views: &[View], opts: &RenderOptions) -> Result<f32, RenderError> {
+    let (mut sq, mut n) = (0.0f64, 0usize);
+    for v in views {
+        let r = render::render(g, &v.camera, opts)?;
+        for (p, q) in r.image.iter().zip(&v.target) {
+            for c in 0..3 {
+                sq += f64::from(p[c].clamp(0.0, 1.0) - q[c]).powi(2);
+            }
+        }
+        n += 3 * r.image.len();
+    }
+    let mse = sq / n.max(1) as f64;
+    Ok(if mse > 0.0 {
+        (-10.0 * mse.log10()) as f32
+    } else {
+        f32::INFINITY
+    })
 }
 
 /// Scales the offsets of the Gaussians in `on` from `base` by `f` (quaternions renormalised).
@@ -627,6 +672,9 @@ fn shrink_offsets(g: &mut Gaussians, base: &Gaussians, on: &[bool], f: f32) {
             lerp(&mut g.sh_rest[k], base.sh_rest[k]);
         }
         lerp(&mut g.opacity_logits[i], base.opacity_logits[i]);
+        if g.rotations[i] == base.rotations[i] {
+            continue; // unchanged quaternions stay bit-identical
+        }
         for k in 0..4 {
             lerp(&mut g.rotations[i][k], base.rotations[i][k]);
         }
@@ -1017,6 +1065,19 @@ pub fn finetune(
         }
     }
 
+    // The per-step bound acts on the renders before each update; hold it exactly at the end:
+    // the mean PSNR of every training view, re-rendered, scaled back onto the bound.
+    if !cfg.coupled && cfg.target_psnr > 0.0 {
+        for _ in 0..4 {
+            let psnr = views_psnr(&g, views, render_opts)?;
+            if psnr >= cfg.target_psnr {
+                break;
+            }
+            let f = 10f32.powf((psnr - cfg.target_psnr) / 20.0);
+            shrink_offsets(&mut g, scene, &masks.is_carrier, f);
+        }
+    }
+
     let total: f64 = wm_norm_sum.iter().sum();
     let wm_grad_share = wm_norm_sum
         .iter()
@@ -1158,6 +1219,74 @@ mod tests {
         (0..8).map(|i| i % 3 == 0).collect()
     }
 
+    /// Mean PSNR of `g`'s renders of `views` against their targets.
+    fn mean_psnr(g: &Gaussians, views: &[View], opts: &RenderOptions) -> f64 {
+        let mut total = 0.0;
+        for v in views {
+            let r = render::render(g, &v.camera, opts).unwrap();
+            let mse = r
+                .image
+                .iter()
+                .zip(&v.target)
+                .map(|(p, q)| {
+                    (0..3)
+                        .map(|c| f64::from(p[c].clamp(0.0, 1.0) - q[c]).powi(2))
+                        .sum::<f64>()
+                })
+                .sum::<f64>()
+                / (3 * r.image.len()) as f64;
+            total += -10.0 * mse.max(1e-12).log10();
+        }
+        total / views.len() as f64
+    }
+
+    #[test]
+    fn the_fidelity_bound_holds_the_training_views_and_colour_only_keeps_geometry() {
+        let (g, views, opts) = setup();
+        let m = model(8);
+        let msg = message();
+        let carrier = |i: usize| i.is_multiple_of(3);
+        let mk = masks(g.len(), carrier, [1.0; 5], [0.0; 5]);
+        let run = |target: f32| {
+            let cfg = FinetuneConfig {
+                target_psnr: target,
+                wm_lr_scale: 200.0,
+                wm_lr_min_fraction: 1.0,
+                views_per_step: 4,
+                ..config(25)
+            };
+            finetune(&g, &mk, &views, &m, &msg, &cfg, |_| {
+                ControlFlow::Continue(())
+            })
+            .unwrap()
+        };
+        let free = run(0.0);
+        let bound = run(40.0);
+        let (p_free, p_bound) = (
+            mean_psnr(&free.gaussians, &views, &opts),
+            mean_psnr(&bound.gaussians, &views, &opts),
+        );
+        assert!(
+            p_free < 38.0,
+            "the writes are too weak to test the bound: {p_free} dB"
+        );
+        assert!(
+            p_bound > 39.0,
+            "bound 40 dB, got {p_bound} dB (unbounded {p_free} dB)"
+        );
+        assert!(bound.log.iter().any(|s| s.wm_projection < 1.0));
+        assert!(free.log.iter().all(|s| s.wm_projection == 1.0));
+        // Colour only (the default): no carrier's geometry moved, some colour did.
+        let h = &bound.gaussians;
+        assert!((0..g.len()).any(|i| h.sh_dc[i] != g.sh_dc[i]));
+        for i in 0..g.len() {
+            assert_eq!(h.opacity_logits[i], g.opacity_logits[i]);
+            assert_eq!(h.log_scales[i], g.log_scales[i]);
+            assert_eq!(h.rotations[i], g.rotations[i]);
+            assert_eq!(h.means[i], g.means[i]);
+        }
+    }
+
     #[test]
     fn wm_lr_scale_scales_the_coupled_steps_too() {
         // Regression: the coupled branch ignored wm_lr_scale (the "coupled ×5" runs ran at ×1).
@@ -1171,8 +1300,10 @@ mod tests {
                 wm_lr_scale: scale,
                 ..config(1)
             };
-            let out = finetune(&g, &mk, &views, &m, &msg, &cfg, |_| ControlFlow::Continue(()))
-                .unwrap();
+            let out = finetune(&g, &mk, &views, &m, &msg, &cfg, |_| {
+                ControlFlow::Continue(())
+            })
+            .unwrap();
             out.gaussians
                 .sh_dc
                 .iter()
