@@ -177,8 +177,18 @@ impl DiffAttack {
                 x_degrees,
                 y_degrees,
             } => {
-                range("x_degrees", x_degrees, x_degrees.abs() < 80.0, "in (−80, 80)")?;
-                range("y_degrees", y_degrees, y_degrees.abs() < 80.0, "in (−80, 80)")
+                range(
+                    "x_degrees",
+                    x_degrees,
+                    x_degrees.abs() < 80.0,
+                    "in (−80, 80)",
+                )?;
+                range(
+                    "y_degrees",
+                    y_degrees,
+                    y_degrees.abs() < 80.0,
+                    "in (−80, 80)",
+                )
             }
             Self::Scale { factor } => range("factor", factor, factor > 0.0, "> 0"),
             Self::Crop { keep } => range("keep", keep, keep > 0.0 && keep <= 1.0, "in (0, 1]"),
@@ -447,14 +457,9 @@ fn perspective(x: Tensor<4>, x_degrees: f32, y_degrees: f32) -> Tensor<4> {
     for y in 0..h {
         for xx in 0..w {
             let (u, v) = (xx as f64 + 0.5, y as f64 + 0.5);
-            let (sx, sy) = perspective_source(
-                u,
-                v,
-                (h, w),
-                f64::from(x_degrees),
-                f64::from(y_degrees),
-            )
-            .unwrap_or((-1e6, -1e6));
+            let (sx, sy) =
+                perspective_source(u, v, (h, w), f64::from(x_degrees), f64::from(y_degrees))
+                    .unwrap_or((-1e6, -1e6));
             // Pixel position (centres at +0.5) → [−1, 1] without corner alignment.
             grid.push((2.0 * sx / w as f64 - 1.0) as f32);
             grid.push((2.0 * sy / h as f64 - 1.0) as f32);
@@ -976,7 +981,10 @@ mod tests {
             for xp in [-0.3f64, -0.1, 0.2, 0.4] {
                 let u = 32.0 + f * xp * c / (1.0 - xp * s);
                 let (sx, sy) = perspective_source(u, 32.0, (h, w), 0.0, theta).unwrap();
-                assert!((sx - (32.0 + f * xp)).abs() < 1e-9, "θ {theta} X {xp}: {sx}");
+                assert!(
+                    (sx - (32.0 + f * xp)).abs() < 1e-9,
+                    "θ {theta} X {xp}: {sx}"
+                );
                 assert!((sy - 32.0).abs() < 1e-9);
             }
         }

@@ -188,7 +188,7 @@ pub fn eval_attacks(seed: u64) -> Vec<(String, Option<RealAttack>)> {
     v
 }
 
-fn attack_err(name: &str, e: impl std::fmt::Display) -> WeightsError {
+pub(crate) fn attack_err(name: &str, e: impl std::fmt::Display) -> WeightsError {
     WeightsError::Attack {
         name: name.to_string(),
         message: e.to_string(),
@@ -208,7 +208,8 @@ fn decode_batches(
         .collect()
 }
 
-fn psnr_u8(a: &RgbImage, b: &RgbImage) -> f64 {
+/// PSNR (dB) of two same-size 8-bit images (∞ when equal).
+pub(crate) fn psnr_u8(a: &RgbImage, b: &RgbImage) -> f64 {
     let n = a.as_raw().len() as f64;
     let mse = a
         .as_raw()

@@ -86,7 +86,7 @@ pub enum Norm {
 pub fn group_count(channels: usize) -> usize {
     (1..=8.min(channels))
         .rev()
-        .find(|g| channels % g == 0)
+        .find(|g| channels.is_multiple_of(*g))
         .unwrap_or(1)
 }
 
@@ -199,7 +199,13 @@ impl HiddenDecoderConfig {
         );
         let mut layers = Vec::with_capacity(self.depth + 2);
         let k = self.kernel.max(1) | 1;
-        layers.push(ConvBnRelu::with_kernel(3, self.channels, self.norm, k, device));
+        layers.push(ConvBnRelu::with_kernel(
+            3,
+            self.channels,
+            self.norm,
+            k,
+            device,
+        ));
         for _ in 0..self.depth {
             layers.push(ConvBnRelu::with_kernel(
                 self.channels,

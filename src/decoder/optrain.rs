@@ -37,10 +37,11 @@ use super::data::ImageSet;
 use super::model::{HiddenDecoder, HiddenDecoderConfig, Norm};
 use super::probe::{OptEmbedOptions, ProbeOptions, ProbeReport, optimise_marks, view_eot};
 use super::train::{
-    DeviceChoice, LogEntry, TrainError, bce_with_logits, list_checkpoints, psnr_from_mse,
-    step_seed,
+    DeviceChoice, LogEntry, TrainError, bce_with_logits, list_checkpoints, psnr_from_mse, step_seed,
 };
-use crate::attack::diff::{DiffAttack, EotConfig, EotRng, random_composition, straight_through_round};
+use crate::attack::diff::{
+    DiffAttack, EotConfig, EotRng, random_composition, straight_through_round,
+};
 
 /// Configuration of an optimiser-as-encoder run (stored in checkpoints and the sidecar).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -154,7 +155,8 @@ impl OptTrainConfig {
         if !(self.lr > 0.0 && self.lr.is_finite()) {
             return bad("lr must be positive");
         }
-        if !(0.0..=1.0).contains(&self.lr_min_fraction) || !(0.0..=1.0).contains(&self.attack_prob_max)
+        if !(0.0..=1.0).contains(&self.lr_min_fraction)
+            || !(0.0..=1.0).contains(&self.attack_prob_max)
         {
             return bad("lr_min_fraction and attack_prob_max must be in [0, 1]");
         }
@@ -388,7 +390,9 @@ impl OptTrainer {
         let k = self.step;
         let mut rng = EotRng::new(step_seed(c.seed, k));
         let (b, u, l, s) = (c.batch_size, c.unmarked, c.bits, c.crop);
-        let pixels = self.train.sample_batch(&mut rng, b + u, s, c.min_scale, true);
+        let pixels = self
+            .train
+            .sample_batch(&mut rng, b + u, s, c.min_scale, true);
         let bits: Vec<f32> = (0..b * l).map(|_| (rng.next_u64() >> 63) as f32).collect();
         let all = Tensor::<4>::from_data(TensorData::new(pixels, [b + u, 3, s, s]), &self.device);
         let all = straight_through_round(all.mul_scalar(255.0))
@@ -459,9 +463,7 @@ impl OptTrainer {
             usq = Some(sq);
         }
         let grads = GradientsParams::from_grads(loss.backward(), &self.decoder);
-        self.decoder = self
-            .optim
-            .step(c.lr_at(k), self.decoder.clone(), grads);
+        self.decoder = self.optim.step(c.lr_at(k), self.decoder.clone(), grads);
 
         let z: Vec<f32> = zm.detach().try_into_vec_as::<f32>().unwrap_or_default();
         let correct = z
@@ -495,8 +497,7 @@ impl OptTrainer {
         if n == 0 {
             return None;
         }
-        let mean =
-            |f: fn(&OptStepStats) -> f64| self.window.iter().map(f).sum::<f64>() / n as f64;
+        let mean = |f: fn(&OptStepStats) -> f64| self.window.iter().map(f).sum::<f64>() / n as f64;
         let mse = mean(|s| s.image_mse);
         let usq = mean(|s| s.unmarked_sq);
         let secs = self.window_start.elapsed().as_secs_f64().max(1e-9);
@@ -543,22 +544,14 @@ impl OptTrainer {
 
     /// Writes a checkpoint under `root` atomically and prunes old ones.
     pub fn save_checkpoint(&self, root: &Path) -> Result<PathBuf, TrainError> {
-        std::fs::create_dir_all(root).map_err(io_err(root))?;
-        let final_dir = root.join(format!("step-{:08}", self.step));
-        let tmp = tempfile::Builder::new()
-            .prefix(".tmp-step-")
-            .tempdir_in(root)
-            .map_err(io_err(root))?;
-        let net_path = tmp.path().join("net.bpk");
-        let bytes =
+        let net_path = root.join("net.bpk");
+        let net =
             artifact::to_burnpack(self.decoder.clone()).map_err(|e| record_err(&net_path, e))?;
-        std::fs::write(&net_path, bytes).map_err(io_err(&net_path))?;
-        let optim_path = tmp.path().join("optim.bpk");
-        let bytes = self
+        let optim_path = root.join("optim.bpk");
+        let optim = self
             .optim
             .into_bytes()
             .map_err(|e| record_err(&optim_path, e))?;
-        std::fs::write(&optim_path, &bytes[..]).map_err(io_err(&optim_path))?;
         let state = OptCheckpointState {
             version: 1,
             step: self.step,
@@ -566,37 +559,27 @@ impl OptTrainer {
             wall_s: self.wall_s(),
             history: self.history.clone(),
         };
-        let state_path = tmp.path().join("state.json");
         let json = serde_json::to_vec_pretty(&state).expect("state serialises");
-        std::fs::write(&state_path, json).map_err(io_err(&state_path))?;
-        for f in ["net.bpk", "optim.bpk", "state.json"] {
-            let p = tmp.path().join(f);
-            std::fs::File::open(&p)
-                .and_then(|f| f.sync_all())
-                .map_err(io_err(&p))?;
-        }
-        if final_dir.exists() {
-            std::fs::remove_dir_all(&final_dir).map_err(io_err(&final_dir))?;
-        }
-        let tmp_path = tmp.keep();
-        std::fs::rename(&tmp_path, &final_dir).map_err(io_err(&final_dir))?;
-        let all = list_checkpoints(root);
-        let keep = self.config.keep_checkpoints.max(1);
-        for (_, old) in all.iter().take(all.len().saturating_sub(keep)) {
-            let _ = std::fs::remove_dir_all(old);
-        }
-        Ok(final_dir)
+        super::train::write_checkpoint(
+            root,
+            self.step,
+            &[
+                ("net.bpk", &net),
+                ("optim.bpk", &optim[..]),
+                ("state.json", &json),
+            ],
+            self.config.keep_checkpoints,
+        )
     }
 
     /// The trained decoder as an inference model on `device` (decoder-only artifact).
     pub fn model(&self, device: &Device) -> Result<WatermarkModel, WeightsError> {
         let c = &self.config;
-        let bytes = artifact::to_burnpack(self.decoder.valid()).map_err(|e| {
-            WeightsError::Record {
+        let bytes =
+            artifact::to_burnpack(self.decoder.valid()).map_err(|e| WeightsError::Record {
                 path: PathBuf::from("<training>"),
                 message: e.to_string(),
-            }
-        })?;
+            })?;
         let decoder = artifact::from_burnpack(c.decoder_config().init(device), bytes)
             .map_err(|e| WeightsError::Record {
                 path: PathBuf::from("<training>"),
@@ -706,7 +689,11 @@ pub fn run(
     }
     let report = match (&t.config.final_probe, opts.probe_images.is_empty()) {
         (Some(p), false) => {
-            let _ = writeln!(log, "probing on {} held-out images…", opts.probe_images.len());
+            let _ = writeln!(
+                log,
+                "probing on {} held-out images…",
+                opts.probe_images.len()
+            );
             Some(super::probe::probe(&model, &opts.probe_images, p, &ad)?)
         }
         _ => None,
@@ -714,4 +701,88 @@ pub fn run(
     model.sidecar.probe = report.clone();
     model.save(opts.out)?;
     Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::decoder::train::tests::synthetic_set;
+
+    fn tiny() -> OptTrainConfig {
+        OptTrainConfig {
+            bits: 4,
+            crop: 32,
+            batch_size: 2,
+            unmarked: 1,
+            steps: 4,
+            inner_steps: 2,
+            attack_warmup: 1,
+            attack_ramp: 1,
+            decoder_channels: 8,
+            decoder_depth: 1,
+            checkpoint_every: 0,
+            log_every: 0,
+            keep_checkpoints: 2,
+            final_probe: None,
+            whitening_samples: 0,
+            ..OptTrainConfig::default()
+        }
+    }
+
+    fn outputs(t: &OptTrainer, set: &ImageSet) -> Vec<f32> {
+        let mut rng = EotRng::new(5);
+        let px = set.sample_batch(&mut rng, 2, 32, 1.0, false);
+        let x = Tensor::<4>::from_data(TensorData::new(px, [2, 3, 32, 32]), &t.device);
+        t.decoder
+            .valid()
+            .forward(x.without_autodiff())
+            .try_into_vec_as()
+            .unwrap()
+    }
+
+    #[test]
+    fn resume_continues_exactly_and_the_schedules_hold() {
+        let c = tiny();
+        assert_eq!(c.psnr_at(0), c.psnr_start_db);
+        assert_eq!(c.psnr_at(10_000), c.psnr_end_db);
+        assert_eq!(c.attack_probability(0), 0.0);
+        assert!((c.attack_probability(5) - c.attack_prob_max).abs() < 1e-12);
+        assert!(
+            OptTrainConfig {
+                psnr_end_db: 5.0,
+                ..tiny()
+            }
+            .validate()
+            .is_err()
+        );
+
+        let set = synthetic_set(3, 48, 7);
+        let dir = tempfile::tempdir().unwrap();
+        let first = OptTrainer::new(c.clone(), set.clone()).unwrap();
+        let start = first.save_checkpoint(&dir.path().join("start")).unwrap();
+        let mut straight = OptTrainer::resume(&start, set.clone(), |c| c.clone()).unwrap();
+        let mut split = OptTrainer::resume(&start, set.clone(), |c| c.clone()).unwrap();
+        while !straight.done() {
+            let s = straight.step().unwrap();
+            assert!(s.loss.is_finite() && (0.0..=1.0).contains(&s.bit_accuracy));
+        }
+        let root = dir.path().join("ckpt");
+        for _ in 0..2 {
+            split.step().unwrap();
+        }
+        let ckpt = split.save_checkpoint(&root).unwrap();
+        let mut resumed = OptTrainer::resume(&ckpt, set.clone(), |c| c.clone()).unwrap();
+        assert_eq!(resumed.step, 2);
+        while !resumed.done() {
+            resumed.step().unwrap();
+        }
+        let (a, b) = (outputs(&straight, &set), outputs(&resumed, &set));
+        for (x, y) in a.iter().zip(&b) {
+            assert!((x - y).abs() < 1e-4 * (1.0 + x.abs()), "{a:?} vs {b:?}");
+        }
+        // Training moved the decoder (the comparison above is not of two untouched copies).
+        let c0 = outputs(&first, &set);
+        let moved: f32 = a.iter().zip(&c0).map(|(x, y)| (x - y).abs()).sum();
+        assert!(moved > 1e-5, "no step changed the decoder");
+    }
 }

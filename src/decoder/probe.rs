@@ -28,7 +28,7 @@ use image::RgbImage;
 use serde::{Deserialize, Serialize};
 
 use super::artifact::{WatermarkModel, WeightsError, rgb8_batch, tensor_to_rgb8};
-use super::eval::{Stats, bit_accuracy, bit_bias, eval_attacks};
+use super::eval::{Stats, attack_err, bit_accuracy, bit_bias, eval_attacks, psnr_u8};
 use super::train::bce_with_logits;
 use crate::attack::diff::{AttackFamily, DiffAttack, EotConfig, EotRng, random_composition};
 
@@ -131,7 +131,10 @@ pub fn optimise_marks(
     for i in 0..n {
         let eta = 0.1 + 0.9 * 0.5 * (1.0 + (std::f64::consts::PI * i as f64 / n as f64).cos());
         let d = delta.clone().detach().require_grad();
-        let x = cover.clone().add(upsample(d.clone(), [h, w])).clamp(0.0, 1.0);
+        let x = cover
+            .clone()
+            .add(upsample(d.clone(), [h, w]))
+            .clamp(0.0, 1.0);
         let attack = if rng.uniform() < opts.attack_prob {
             random_composition(&opts.eot, rng)
         } else {
@@ -233,29 +236,6 @@ pub fn view_conditions() -> Vec<(String, DiffAttack)> {
         v.push((format!("downscale_{f}"), DiffAttack::Scale { factor: f }));
     }
     v
-}
-
-fn attack_err(name: &str, e: impl std::fmt::Display) -> WeightsError {
-    WeightsError::Attack {
-        name: name.to_string(),
-        message: e.to_string(),
-    }
-}
-
-fn psnr_u8(a: &RgbImage, b: &RgbImage) -> f64 {
-    let n = a.as_raw().len() as f64;
-    let mse = a
-        .as_raw()
-        .iter()
-        .zip(b.as_raw())
-        .map(|(&x, &y)| (f64::from(x) - f64::from(y)).powi(2))
-        .sum::<f64>()
-        / n;
-    if mse > 0.0 {
-        10.0 * (255.0f64 * 255.0 / mse).log10()
-    } else {
-        f64::INFINITY
-    }
 }
 
 /// Runs the probe (module docs) of `model` (loaded on the autodiff `device`) on same-size
@@ -382,9 +362,8 @@ mod tests {
             .detach();
         let m: Vec<f32> = (0..16).map(|i| f32::from(u8::from(i % 3 == 0))).collect();
         let m = Tensor::<2>::from_data(TensorData::new(m, [2, 8]), &device);
-        let bce = |x: Tensor<4>| {
-            f64::from(bce_with_logits(forward(x), m.clone()).into_scalar::<f32>())
-        };
+        let bce =
+            |x: Tensor<4>| f64::from(bce_with_logits(forward(x), m.clone()).into_scalar::<f32>());
         let before = bce(cover.clone());
         let opts = OptEmbedOptions {
             psnr_db: 30.0,
@@ -392,8 +371,14 @@ mod tests {
             attack_prob: 0.0,
             ..OptEmbedOptions::default()
         };
-        let change =
-            optimise_marks(&forward, cover.clone(), m.clone(), &opts, &mut EotRng::new(1)).unwrap();
+        let change = optimise_marks(
+            &forward,
+            cover.clone(),
+            m.clone(),
+            &opts,
+            &mut EotRng::new(1),
+        )
+        .unwrap();
         let rms: Vec<f32> = rms_per_image(change.clone()).try_into_vec_as().unwrap();
         let r = rms_for_psnr(30.0) as f32;
         for v in rms {

@@ -551,6 +551,40 @@ pub fn list_checkpoints(root: &Path) -> Vec<(usize, PathBuf)> {
     out
 }
 
+/// Writes `files` as the checkpoint `root/step-NNNNNNNN` atomically (a temporary folder,
+/// every file synced, then renamed; a crash leaves whole checkpoints only) and keeps the newest
+/// `keep` checkpoints. Shared by both trainers.
+pub fn write_checkpoint(
+    root: &Path,
+    step: usize,
+    files: &[(&str, &[u8])],
+    keep: usize,
+) -> Result<PathBuf, TrainError> {
+    std::fs::create_dir_all(root).map_err(io_err(root))?;
+    let final_dir = root.join(format!("step-{step:08}"));
+    let tmp = tempfile::Builder::new()
+        .prefix(".tmp-step-")
+        .tempdir_in(root)
+        .map_err(io_err(root))?;
+    for (name, bytes) in files {
+        let p = tmp.path().join(name);
+        std::fs::write(&p, bytes).map_err(io_err(&p))?;
+        std::fs::File::open(&p)
+            .and_then(|f| f.sync_all())
+            .map_err(io_err(&p))?;
+    }
+    if final_dir.exists() {
+        std::fs::remove_dir_all(&final_dir).map_err(io_err(&final_dir))?;
+    }
+    let tmp_path = tmp.keep();
+    std::fs::rename(&tmp_path, &final_dir).map_err(io_err(&final_dir))?;
+    let all = list_checkpoints(root);
+    for (_, old) in all.iter().take(all.len().saturating_sub(keep.max(1))) {
+        let _ = std::fs::remove_dir_all(old);
+    }
+    Ok(final_dir)
+}
+
 impl Trainer {
     /// A fresh run (weights initialised from `config.seed`).
     pub fn new(config: TrainConfig, train: ImageSet) -> Result<Self, TrainError> {
@@ -885,24 +919,16 @@ impl Trainer {
 
     /// Writes a checkpoint of the current state under `root` (atomically) and prunes old ones.
     pub fn save_checkpoint(&self, root: &Path) -> Result<PathBuf, TrainError> {
-        std::fs::create_dir_all(root).map_err(io_err(root))?;
         // BatchNorm running statistics hold their newest update in a per-thread slot until the
         // next forward pass; `valid` folds it in (shared state), so the record is current.
         let _ = self.net.valid();
-        let final_dir = root.join(format!("step-{:08}", self.step));
-        let tmp = tempfile::Builder::new()
-            .prefix(".tmp-step-")
-            .tempdir_in(root)
-            .map_err(io_err(root))?;
-        let net_path = tmp.path().join("net.bpk");
-        let bytes = module_bytes(self.net.clone(), &net_path)?;
-        std::fs::write(&net_path, bytes).map_err(io_err(&net_path))?;
-        let optim_path = tmp.path().join("optim.bpk");
-        let bytes = self
+        let net_path = root.join("net.bpk");
+        let net = module_bytes(self.net.clone(), &net_path)?;
+        let optim_path = root.join("optim.bpk");
+        let optim = self
             .optim
             .into_bytes()
             .map_err(|e| record_err(&optim_path, e))?;
-        std::fs::write(&optim_path, &bytes[..]).map_err(io_err(&optim_path))?;
         let state = CheckpointState {
             version: 1,
             step: self.step,
@@ -915,26 +941,17 @@ impl Trainer {
             history: self.history.clone(),
             started_from: self.started_from.clone(),
         };
-        let state_path = tmp.path().join("state.json");
         let json = serde_json::to_vec_pretty(&state).expect("state serialises");
-        std::fs::write(&state_path, json).map_err(io_err(&state_path))?;
-        for f in ["net.bpk", "optim.bpk", "state.json"] {
-            let p = tmp.path().join(f);
-            std::fs::File::open(&p)
-                .and_then(|f| f.sync_all())
-                .map_err(io_err(&p))?;
-        }
-        if final_dir.exists() {
-            std::fs::remove_dir_all(&final_dir).map_err(io_err(&final_dir))?;
-        }
-        let tmp_path = tmp.keep();
-        std::fs::rename(&tmp_path, &final_dir).map_err(io_err(&final_dir))?;
-        let all = list_checkpoints(root);
-        let keep = self.config.keep_checkpoints.max(1);
-        for (_, old) in all.iter().take(all.len().saturating_sub(keep)) {
-            let _ = std::fs::remove_dir_all(old);
-        }
-        Ok(final_dir)
+        write_checkpoint(
+            root,
+            self.step,
+            &[
+                ("net.bpk", &net),
+                ("optim.bpk", &optim[..]),
+                ("state.json", &json),
+            ],
+            self.config.keep_checkpoints,
+        )
     }
 
     /// The trained model as used after training: frozen decoder and encoder on the plain
