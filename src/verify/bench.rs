@@ -373,8 +373,17 @@ pub fn run(
 /// The report as markdown tables (one row per scene × bits; accuracies in %).
 pub fn markdown(report: &QualityReport) -> String {
     let cols = [
-        "clean", "noise", "rotation", "scaling", "blur_0.8", "crop", "jpeg", "combined",
-        "remove_20", "clone_20", "noise_0.1",
+        "clean",
+        "noise",
+        "rotation",
+        "scaling",
+        "blur_0.8",
+        "crop",
+        "jpeg",
+        "combined",
+        "remove_20",
+        "clone_20",
+        "noise_0.1",
     ];
     let mut s = String::new();
     s += "| scene | bits | views train / unseen | PSNR | SSIM |";
@@ -393,7 +402,9 @@ pub fn markdown(report: &QualityReport) -> String {
                 .rows
                 .iter()
                 .find(|x| x.name == name)
-                .map_or("–".to_string(), |x| format!("{:.1}", 100.0 * x.bit_accuracy))
+                .map_or("–".to_string(), |x| {
+                    format!("{:.1}", 100.0 * x.bit_accuracy)
+                })
         };
         let row = |name: &str| r.eval.rows.iter().find(|x| x.name == name);
         s += &format!(
@@ -434,4 +445,82 @@ pub fn markdown(report: &QualityReport) -> String {
         );
     }
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::synthetic::object_scene;
+    use crate::verify::eval::Row;
+
+    #[test]
+    fn unseen_views_are_not_training_views() {
+        let g = object_scene(200, 0, 3);
+        let opts = QualityOptions::quick(PathBuf::from("/nonexistent"));
+        let scene = &shared_scenes()[0];
+        let (train, unseen) = views(scene, &g, &opts).unwrap();
+        assert_eq!(train.len(), 7);
+        assert_eq!(unseen.len(), 4);
+        for u in &unseen {
+            let nearest = train
+                .iter()
+                .map(|t| t.center().distance(u.center()))
+                .fold(f32::INFINITY, f32::min);
+            let radius = u.center().length().max(1e-3);
+            assert!(
+                nearest > 0.05 * radius,
+                "an unseen view sits on a training view"
+            );
+        }
+    }
+
+    fn row(name: &str, acc: f64, detected: bool) -> Row {
+        Row {
+            name: name.into(),
+            kind: "image",
+            bit_accuracy: acc,
+            bit_accuracy_combined: acc,
+            p_value: 0.5,
+            detected,
+            detection_rate_per_view: 0.0,
+        }
+    }
+
+    #[test]
+    fn targets_are_checked_and_a_detected_unmarked_scene_fails() {
+        let mut rows = vec![row("clean", 0.99, true), row("unmarked", 0.5, false)];
+        for (n, t) in targets(32).into_iter().skip(3) {
+            rows.push(row(n, t + 0.001, false));
+        }
+        let eval = SceneEval {
+            views: 4,
+            psnr: 36.5,
+            ssim: 0.985,
+            fpr: 1e-6,
+            rows,
+        };
+        assert!(
+            check(&eval, 32).iter().all(|t| t.met),
+            "{:?}",
+            check(&eval, 32)
+        );
+        let mut worse = eval.clone();
+        worse.psnr = 35.9;
+        worse.rows[1].detected = true;
+        let missed: Vec<String> = check(&worse, 32)
+            .into_iter()
+            .filter(|t| !t.met)
+            .map(|t| t.name)
+            .collect();
+        assert_eq!(missed, ["psnr", "unmarked_detected"]);
+        assert!(
+            markdown(&QualityReport {
+                options: QualityOptions::quick(PathBuf::new()),
+                runs: vec![],
+                wall_s: 0.0,
+                met: true,
+            })
+            .starts_with("| scene |")
+        );
+    }
 }
