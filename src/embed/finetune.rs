@@ -16,11 +16,17 @@
 //!   project; the D-SSIM term takes its place (the `Lvis` weights are a config, so a perceptual
 //!   term can be added beside it).
 //! - **Gate** (eq. `gate`): carriers (WM★) take ∂L_wm only, every other Gaussian (VIS) ∂L_vis
-//!   only. The optimiser is Adam with per-channel learning rates (INRIA's). Adam normalises
-//!   each parameter's gradient, so a constant mask on the *gradient* would cancel; the channel
-//!   mask m_g(i) therefore scales the Adam *step* of its channel, which is what scaling the
-//!   gradient does under the SGD update the paper writes. Means move only by
+//!   only, with INRIA's per-channel learning rates. Each route steps by
+//!   [`StepRule::RouteNormalized`] (default: momentum, one second moment per channel shared by
+//!   the route, so a Gaussian moves in proportion to its gradient) or per-parameter Adam
+//!   ([`StepRule::Adam`]). The channel mask m_g(i) scales the *step* of its channel (under Adam a
+//!   constant mask on the gradient would cancel), which is what scaling the gradient does under
+//!   the SGD update the paper writes. Carriers move colour only unless
+//!   [`FinetuneConfig::wm_geometry`]; means move only by
 //!   [`crate::embed::mask::MaskConfig::position`] (0 by default).
+//! - **Fidelity bound** [`FinetuneConfig::target_psnr`]: when a step's renders fall below it,
+//!   the carriers' offsets from the planned scene are scaled back (the 2D probe's projection,
+//!   `decoder::probe`), and once more, exactly, on every training view at the end.
 //! - `coupled` (ablation "w/o decoupling"): one joint loss λ_vis·L_vis + λ_wm·L_wm, its
 //!   gradient applied to every Gaussian without masks.
 //!
