@@ -60,6 +60,7 @@ impl App {
             wake.clone(),
             rx.clone(),
         );
+        let verify_slots = Arc::new(tokio::sync::Semaphore::new(cfg.verify_concurrency.max(1)));
         let state = AppState {
             store: store.clone(),
             cfg,
@@ -67,6 +68,7 @@ impl App {
             pool: pool.status.clone(),
             decoders: Arc::new(Decoders::new(Device::flex())),
             metrics: Arc::new(Metrics::default()),
+            verify_slots,
         };
         let app = router(state);
         let rx_gc = rx.clone();

@@ -60,6 +60,14 @@ pub struct Config {
     pub max_verify_images: usize,
     /// Largest side of an image submitted for verification, in pixels.
     pub max_image_side: u32,
+    /// Most pixels (all images together) one verification may ask to decode: bounds the work of
+    /// a request (one 4096² image costs ≈ 8.6 s of CPU on the 2-core machine).
+    pub max_verify_pixels: u64,
+    /// Verifications decoded at once; further ones wait up to `verify_wait_ms`, then get 503
+    /// with `Retry-After`.
+    pub verify_concurrency: usize,
+    /// How long a verification waits for a decoding slot, in milliseconds.
+    pub verify_wait_ms: u64,
     /// Family-wise false-positive rate of verification decisions.
     pub fpr: f64,
     /// Job lease; workers heartbeat every third of it.
@@ -90,6 +98,9 @@ impl Default for Config {
             max_gaussians: 10_000_000,
             max_verify_images: 64,
             max_image_side: 4096,
+            max_verify_pixels: 1 << 24,
+            verify_concurrency: 2,
+            verify_wait_ms: 2000,
             fpr: 1e-6,
             lease_seconds: 60,
             max_attempts: 3,
@@ -183,6 +194,8 @@ impl Config {
         env!("SPLATMARK_MAX_UPLOAD_BYTES", self.max_upload_bytes);
         env!("SPLATMARK_MAX_GAUSSIANS", self.max_gaussians);
         env!("SPLATMARK_FPR", self.fpr);
+        env!("SPLATMARK_MAX_VERIFY_PIXELS", self.max_verify_pixels);
+        env!("SPLATMARK_VERIFY_CONCURRENCY", self.verify_concurrency);
         env!("SPLATMARK_LEASE_SECONDS", self.lease_seconds);
         env!("SPLATMARK_MAX_ATTEMPTS", self.max_attempts);
         env!("SPLATMARK_MASTER_KEY_FILE", some self.master_key_file);
@@ -212,6 +225,12 @@ impl Config {
         }
         if self.views.orbit < 2 || self.views.width < 16 || self.views.height < 16 {
             return bad("views need at least 2 orbit views of at least 16×16 pixels");
+        }
+        if self.verify_concurrency == 0 {
+            return bad("verify_concurrency must be at least 1");
+        }
+        if self.max_verify_pixels < 64 * 64 {
+            return bad("max_verify_pixels must allow one 64×64 image");
         }
         if self.max_image_side < 64 {
             return bad("max_image_side must be at least 64 (the decoder reads ≥ 64 px)");

@@ -13,6 +13,8 @@ pub struct ApiError {
     pub status: StatusCode,
     pub title: &'static str,
     pub detail: String,
+    /// Seconds for a `Retry-After` header (429 / 503).
+    pub retry_after: Option<u32>,
 }
 
 #[derive(Serialize)]
@@ -30,6 +32,19 @@ impl ApiError {
             status,
             title,
             detail: detail.into(),
+            retry_after: None,
+        }
+    }
+
+    /// 503: the service is saturated; the client should come back after `seconds`.
+    pub fn busy(detail: impl Into<String>, seconds: u32) -> Self {
+        Self {
+            retry_after: Some(seconds),
+            ..Self::new(
+                StatusCode::SERVICE_UNAVAILABLE,
+                "Service Unavailable",
+                detail,
+            )
         }
     }
     pub fn bad_request(detail: impl Into<String>) -> Self {
@@ -89,6 +104,10 @@ impl IntoResponse for ApiError {
             header::CONTENT_TYPE,
             HeaderValue::from_static("application/problem+json"),
         );
+        if let Some(s) = self.retry_after {
+            r.headers_mut()
+                .insert(header::RETRY_AFTER, HeaderValue::from(s));
+        }
         if self.status == StatusCode::UNAUTHORIZED {
             r.headers_mut()
                 .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));

@@ -41,39 +41,54 @@ pub struct AppState {
     pub pool: Arc<PoolStatus>,
     pub decoders: Arc<Decoders>,
     pub metrics: Arc<Metrics>,
+    /// Decoding slots of `/v1/verify` (`verify_concurrency` permits).
+    pub verify_slots: Arc<tokio::sync::Semaphore>,
 }
 
-/// Frozen decoders for verification (CPU, loaded on first use, one per message length).
+/// Frozen decoders for verification (CPU, loaded on first use): a small pool per message
+/// length, so concurrent verifications decode in parallel (at most `verify_concurrency` at once,
+/// see [`AppState::verify_slots`]) instead of queueing behind one lock.
 pub struct Decoders {
     device: Device,
-    models: Mutex<HashMap<usize, WatermarkModel>>,
+    idle: Mutex<HashMap<usize, Vec<WatermarkModel>>>,
 }
 
 impl Decoders {
     pub fn new(device: Device) -> Self {
         Self {
             device,
-            models: Mutex::new(HashMap::new()),
+            idle: Mutex::new(HashMap::new()),
         }
     }
 
-    /// Runs `f` with the decoder for `bits` (blocking: call from a blocking thread).
+    /// Runs `f` with a decoder for `bits` taken from the pool (or loaded), and puts it back
+    /// (blocking: call from a blocking thread). The pool's lock is held only to take and return.
     pub fn with<T>(
         &self,
         cfg: &Config,
         bits: usize,
         f: impl FnOnce(&WatermarkModel, &Device) -> T,
     ) -> Result<T, crate::decoder::artifact::WeightsError> {
-        let mut models = self.models.lock().unwrap_or_else(|p| p.into_inner());
-        let m = match models.entry(bits) {
-            std::collections::hash_map::Entry::Occupied(e) => e.into_mut(),
-            std::collections::hash_map::Entry::Vacant(e) => e.insert(WatermarkModel::resolve(
-                weights_path(cfg, bits).as_deref(),
-                bits,
-                &self.device,
-            )?),
+        let taken = self
+            .idle
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .get_mut(&bits)
+            .and_then(Vec::pop);
+        let m = match taken {
+            Some(m) => m,
+            None => {
+                WatermarkModel::resolve(weights_path(cfg, bits).as_deref(), bits, &self.device)?
+            }
         };
-        Ok(f(m, &self.device))
+        let out = f(&m, &self.device);
+        self.idle
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .entry(bits)
+            .or_default()
+            .push(m);
+        Ok(out)
     }
 }
 

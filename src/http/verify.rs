@@ -26,18 +26,59 @@ const MAX_IMAGE_BYTES: usize = 64 << 20;
 /// Candidates listed in a response (the decision uses all of them).
 const LIST: usize = 10;
 
-fn decode_image(bytes: &[u8], i: usize, max_side: u32) -> ApiResult<image::RgbImage> {
-    let mut r = image::ImageReader::new(std::io::Cursor::new(bytes))
+/// A reader for a PNG or JPEG (415 for anything else).
+fn reader(bytes: &[u8], i: usize) -> ApiResult<image::ImageReader<std::io::Cursor<&[u8]>>> {
+    let r = image::ImageReader::new(std::io::Cursor::new(bytes))
         .with_guessed_format()
         .map_err(ApiError::internal)?;
     match r.format() {
-        Some(image::ImageFormat::Png | image::ImageFormat::Jpeg) => {}
-        _ => {
-            return Err(ApiError::unsupported(format!(
-                "image {i}: only PNG and JPEG images can be verified"
-            )));
-        }
+        Some(image::ImageFormat::Png | image::ImageFormat::Jpeg) => Ok(r),
+        _ => Err(ApiError::unsupported(format!(
+            "image {i}: only PNG and JPEG images can be verified"
+        ))),
     }
+}
+
+/// Width × height from the image's header, without decoding it.
+fn header_pixels(bytes: &[u8], i: usize) -> ApiResult<u64> {
+    let (w, h) = reader(bytes, i)?
+        .into_dimensions()
+        .map_err(|e| ApiError::unprocessable(format!("image {i}: {e}")))?;
+    Ok(u64::from(w) * u64::from(h))
+}
+
+/// Refuses a request whose images hold more than `max` pixels together (413), before any of
+/// them is decoded.
+fn check_pixels(images: &[Vec<u8>], max: u64) -> ApiResult<()> {
+    let mut total = 0u64;
+    for (i, b) in images.iter().enumerate() {
+        total = total.saturating_add(header_pixels(b, i)?);
+    }
+    if total > max {
+        return Err(ApiError::too_large(format!(
+            "the images hold {total} pixels together; one verification decodes at most {max} \
+             (send fewer or smaller renders, or split them over several requests)"
+        )));
+    }
+    Ok(())
+}
+
+/// Waits up to `wait` for a decoding slot; 503 with `Retry-After` when none frees up.
+async fn admit(
+    slots: &std::sync::Arc<tokio::sync::Semaphore>,
+    wait: std::time::Duration,
+) -> ApiResult<tokio::sync::OwnedSemaphorePermit> {
+    match tokio::time::timeout(wait, slots.clone().acquire_owned()).await {
+        Ok(Ok(permit)) => Ok(permit),
+        _ => Err(ApiError::busy(
+            "every verification slot is busy; retry shortly",
+            1,
+        )),
+    }
+}
+
+fn decode_image(bytes: &[u8], i: usize, max_side: u32) -> ApiResult<image::RgbImage> {
+    let mut r = reader(bytes, i)?;
     let mut limits = image::Limits::default();
     limits.max_image_width = Some(max_side);
     limits.max_image_height = Some(max_side);
@@ -106,6 +147,7 @@ pub async fn verify(
             "no 'image' field: submit at least one rendered image",
         ));
     }
+    check_pixels(&images, st.cfg.max_verify_pixels)?;
     // Candidates: the asset's payload (or its watermarked versions'), or every registered one.
     let candidates: Vec<Candidate> = match asset_id {
         Some(id) => {
@@ -161,7 +203,13 @@ pub async fn verify(
     let decoders = st.decoders.clone();
     let cfg = st.cfg.clone();
     let n_images = images.len();
+    let permit = admit(
+        &st.verify_slots,
+        std::time::Duration::from_millis(st.cfg.verify_wait_ms),
+    )
+    .await?;
     let decoded = tokio::task::spawn_blocking(move || {
+        let _permit = permit; // held until the decoding ends
         let imgs = images
             .iter()
             .enumerate()
@@ -229,4 +277,53 @@ pub async fn verify(
     body["verification_id"] = json!(vid);
     body["audit_id"] = json!(audit_id);
     Ok(Json(body).into_response())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use axum::http::StatusCode;
+
+    fn png(w: u32, h: u32) -> Vec<u8> {
+        let mut out = vec![];
+        image::RgbImage::new(w, h)
+            .write_to(&mut std::io::Cursor::new(&mut out), image::ImageFormat::Png)
+            .unwrap();
+        out
+    }
+
+    #[test]
+    fn the_pixels_of_a_request_are_bounded_before_decoding() {
+        let imgs = vec![png(100, 100), png(100, 50)];
+        assert!(check_pixels(&imgs, 15_000).is_ok());
+        let e = check_pixels(&imgs, 14_999).unwrap_err();
+        assert_eq!(e.status, StatusCode::PAYLOAD_TOO_LARGE);
+        assert!(e.detail.contains("15000 pixels"), "{}", e.detail);
+        let e = check_pixels(&[b"GIF89a....".to_vec()], 1 << 20).unwrap_err();
+        assert_eq!(e.status, StatusCode::UNSUPPORTED_MEDIA_TYPE);
+    }
+
+    #[tokio::test]
+    async fn a_saturated_verifier_answers_503_with_retry_after() {
+        let slots = std::sync::Arc::new(tokio::sync::Semaphore::new(1));
+        let held = admit(&slots, std::time::Duration::from_millis(10))
+            .await
+            .unwrap();
+        let e = admit(&slots, std::time::Duration::from_millis(10))
+            .await
+            .unwrap_err();
+        assert_eq!(e.status, StatusCode::SERVICE_UNAVAILABLE);
+        let r = e.into_response();
+        assert_eq!(r.headers()[axum::http::header::RETRY_AFTER], "1");
+        assert_eq!(
+            r.headers()[axum::http::header::CONTENT_TYPE],
+            "application/problem+json"
+        );
+        drop(held);
+        assert!(
+            admit(&slots, std::time::Duration::from_millis(10))
+                .await
+                .is_ok()
+        );
+    }
 }
