@@ -387,7 +387,7 @@ fn rotate(x: Tensor<4>, degrees: f32) -> Tensor<4> {
     if sin == 0.0 && cos == 1.0 {
         return x;
     }
-    let [b, _, h, w] = x.dims();
+    let [_, _, h, w] = x.dims();
     let (cx, cy) = ((w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0);
     let mut grid = Vec::with_capacity(h * w * 2);
     for y in 0..h {
@@ -402,12 +402,7 @@ fn rotate(x: Tensor<4>, degrees: f32) -> Tensor<4> {
             grid.push(((2.0 * sy + 1.0) / h as f64 - 1.0) as f32);
         }
     }
-    let grid = Tensor::<4>::from_data(TensorData::new(grid, [1, h, w, 2]), &x.device())
-        .expand([b, h, w, 2]);
-    let options = GridSampleOptions::new(InterpolateMode::Bilinear)
-        .with_padding_mode(GridSamplePaddingMode::Zeros)
-        .with_align_corners(false);
-    x.grid_sample_2d(grid, options)
+    sample_grid(x, grid)
 }
 
 /// Source position (pixels) of output pixel centre `(u, v)` under [`DiffAttack::Perspective`]:
@@ -452,7 +447,7 @@ fn perspective(x: Tensor<4>, x_degrees: f32, y_degrees: f32) -> Tensor<4> {
     if x_degrees == 0.0 && y_degrees == 0.0 {
         return x;
     }
-    let [b, _, h, w] = x.dims();
+    let [_, _, h, w] = x.dims();
     let mut grid = Vec::with_capacity(h * w * 2);
     for y in 0..h {
         for xx in 0..w {
@@ -465,6 +460,13 @@ fn perspective(x: Tensor<4>, x_degrees: f32, y_degrees: f32) -> Tensor<4> {
             grid.push((2.0 * sy / h as f64 - 1.0) as f32);
         }
     }
+    sample_grid(x, grid)
+}
+
+/// Bilinear sampling of every image of `x` `[B, C, H, W]` at one grid of source positions
+/// (`H·W` pairs in [−1, 1], row-major, no corner alignment), black outside.
+fn sample_grid(x: Tensor<4>, grid: Vec<f32>) -> Tensor<4> {
+    let [b, _, h, w] = x.dims();
     let grid = Tensor::<4>::from_data(TensorData::new(grid, [1, h, w, 2]), &x.device())
         .expand([b, h, w, 2]);
     let options = GridSampleOptions::new(InterpolateMode::Bilinear)
