@@ -27,7 +27,7 @@ use std::time::Instant;
 
 use burn::module::Module;
 use burn::optim::{AdamConfig, GradientsParams};
-use burn::tensor::{Bytes, Device, Tensor, TensorData};
+use burn::tensor::{Device, Tensor, TensorData};
 use serde::{Deserialize, Serialize};
 
 use super::artifact::{
@@ -274,13 +274,6 @@ fn record_err(path: &Path, e: impl std::fmt::Display) -> TrainError {
     }
 }
 
-fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> TrainError + '_ {
-    move |source| TrainError::Io {
-        path: path.to_path_buf(),
-        source,
-    }
-}
-
 impl OptTrainer {
     /// A fresh run.
     pub fn new(config: OptTrainConfig, train: ImageSet) -> Result<Self, TrainError> {
@@ -338,13 +331,7 @@ impl OptTrainer {
         train: ImageSet,
         adjust: impl FnOnce(&OptTrainConfig) -> OptTrainConfig,
     ) -> Result<Self, TrainError> {
-        let state_path = dir.join("state.json");
-        let text = std::fs::read(&state_path).map_err(io_err(&state_path))?;
-        let state: OptCheckpointState =
-            serde_json::from_slice(&text).map_err(|source| TrainError::Json {
-                path: state_path.clone(),
-                source,
-            })?;
+        let (state, net_bytes, optim) = super::train::read_checkpoint::<OptCheckpointState>(dir)?;
         let mut config = state.config.clone();
         let wanted = adjust(&config);
         config.steps = wanted.steps;
@@ -354,16 +341,8 @@ impl OptTrainer {
         config.validate()?;
         train.check_crop(config.crop)?;
         let device = config.device.device().autodiff();
-        let net_path = dir.join("net.bpk");
-        let bytes = std::fs::read(&net_path).map_err(io_err(&net_path))?;
-        let decoder = artifact::from_burnpack(config.decoder_config().init(&device), bytes)
-            .map_err(|e| record_err(&net_path, e))?;
-        let optim_path = dir.join("optim.bpk");
-        let bytes = std::fs::read(&optim_path).map_err(io_err(&optim_path))?;
-        let optim = AdamConfig::new()
-            .init()
-            .from_bytes(Bytes::from_bytes_vec(bytes))
-            .map_err(|e| record_err(&optim_path, e))?;
+        let decoder = artifact::from_burnpack(config.decoder_config().init(&device), net_bytes)
+            .map_err(|e| record_err(&dir.join("net.bpk"), e))?;
         Ok(Self::assemble(
             config,
             device,

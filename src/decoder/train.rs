@@ -551,6 +551,28 @@ pub fn list_checkpoints(root: &Path) -> Vec<(usize, PathBuf)> {
     out
 }
 
+/// Reads the checkpoint folder `dir` written by [`write_checkpoint`]: its `state.json` as `S`,
+/// the weights' burnpack bytes (`net.bpk`) and the Adam state (`optim.bpk`). Shared by both
+/// trainers.
+pub fn read_checkpoint<S: serde::de::DeserializeOwned>(
+    dir: &Path,
+) -> Result<(S, Vec<u8>, ModuleOptimizer), TrainError> {
+    let state_path = dir.join("state.json");
+    let text = std::fs::read(&state_path).map_err(io_err(&state_path))?;
+    let state: S = serde_json::from_slice(&text).map_err(|source| TrainError::Json {
+        path: state_path.clone(),
+        source,
+    })?;
+    let net_path = dir.join("net.bpk");
+    let net = std::fs::read(&net_path).map_err(io_err(&net_path))?;
+    let optim_path = dir.join("optim.bpk");
+    let bytes = std::fs::read(&optim_path).map_err(io_err(&optim_path))?;
+    let optim = optimizer()
+        .from_bytes(Bytes::from_bytes_vec(bytes))
+        .map_err(|e| record_err(&optim_path, e))?;
+    Ok((state, net, optim))
+}
+
 /// Writes `files` as the checkpoint `root/step-NNNNNNNN` atomically (a temporary folder,
 /// every file synced, then renamed; a crash leaves whole checkpoints only) and keeps the newest
 /// `keep` checkpoints. Shared by both trainers.
@@ -709,13 +731,7 @@ impl Trainer {
         train: ImageSet,
         adjust: impl FnOnce(&TrainConfig) -> TrainConfig,
     ) -> Result<Self, TrainError> {
-        let state_path = dir.join("state.json");
-        let text = std::fs::read(&state_path).map_err(io_err(&state_path))?;
-        let state: CheckpointState =
-            serde_json::from_slice(&text).map_err(|source| TrainError::Json {
-                path: state_path.clone(),
-                source,
-            })?;
+        let (state, net_bytes, optim) = read_checkpoint::<CheckpointState>(dir)?;
         let mut config = state.config.clone();
         let wanted = adjust(&config);
         config.steps = wanted.steps;
@@ -729,14 +745,7 @@ impl Trainer {
             encoder: config.init_encoder(&device),
             decoder: config.decoder_config().init(&device),
         };
-        let net_path = dir.join("net.bpk");
-        let bytes = std::fs::read(&net_path).map_err(io_err(&net_path))?;
-        let net = load_module_bytes(fresh, bytes, &net_path)?;
-        let optim_path = dir.join("optim.bpk");
-        let bytes = std::fs::read(&optim_path).map_err(io_err(&optim_path))?;
-        let optim = optimizer()
-            .from_bytes(Bytes::from_bytes_vec(bytes))
-            .map_err(|e| record_err(&optim_path, e))?;
+        let net = load_module_bytes(fresh, net_bytes, &dir.join("net.bpk"))?;
         let mut t = Self::assemble(
             config,
             device,
