@@ -183,6 +183,19 @@ pub struct TrainOptArgs {
     /// Gain on the decoder's input band.
     #[arg(long)]
     input_gain: Option<f64>,
+    /// Colour-Fourier features instead of convolutions (a function of the band's colour
+    /// histogram; 0 = convolutional decoder).
+    #[arg(long)]
+    fourier: Option<usize>,
+    /// Standard deviation of the colour frequencies (per unit of the centred band).
+    #[arg(long)]
+    fourier_scale: Option<f64>,
+    /// Colour-Fourier decoder: pixels darker than this (in [0, 1]) do not count.
+    #[arg(long)]
+    fourier_dark: Option<f64>,
+    /// Fit a whitening of the logits on this many clean training crops at the end (0 = none).
+    #[arg(long)]
+    whitening_samples: Option<usize>,
     #[arg(long)]
     seed: Option<u64>,
     #[arg(long)]
@@ -229,6 +242,10 @@ pub fn train_opt_cmd(a: &TrainOptArgs) -> Result<()> {
         decoder_depth,
         kernel,
         input_gain,
+        fourier,
+        fourier_scale,
+        fourier_dark,
+        whitening_samples,
         seed,
         checkpoint_every,
         keep_checkpoints,

@@ -102,6 +102,23 @@ pub struct DecoderArch {
     /// Gain on the input band (absent before December 2026: 1).
     #[serde(default = "unit")]
     pub input_gain: f64,
+    /// Colour-Fourier features (0 = the convolutional decoder; absent before December 2026).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub fourier: usize,
+    /// Their scale (meaningless when `fourier` is 0).
+    #[serde(default = "eight")]
+    pub fourier_scale: f64,
+    /// Their dark cut-off (0 when absent).
+    #[serde(default)]
+    pub fourier_dark: f64,
+}
+
+fn is_zero(n: &usize) -> bool {
+    *n == 0
+}
+
+fn eight() -> f64 {
+    8.0
 }
 
 fn three() -> usize {
@@ -295,6 +312,9 @@ impl Sidecar {
                 norm: d.norm,
                 kernel: d.kernel,
                 input_gain: d.input_gain,
+                fourier: d.fourier,
+                fourier_scale: d.fourier_scale,
+                fourier_dark: d.fourier_dark,
             },
             encoder: Some(EncoderArch {
                 kind: config.encoder,
@@ -320,6 +340,9 @@ impl Sidecar {
             .with_norm(self.decoder.norm)
             .with_kernel(self.decoder.kernel)
             .with_input_gain(self.decoder.input_gain)
+            .with_fourier(self.decoder.fourier)
+            .with_fourier_scale(self.decoder.fourier_scale)
+            .with_fourier_dark(self.decoder.fourier_dark)
     }
 
     fn encoder_config(&self) -> Option<TrainConfig> {

@@ -184,6 +184,24 @@ pub struct HiddenDecoderConfig {
     /// colours for per-pixel decoders).
     #[config(default = 1.0)]
     pub input_gain: f64,
+    /// Colour Fourier features instead of the convolutions (0 = off): the decoder becomes
+    /// `linear(mean_x sin(Ω·(u(x) + 1)))`, `u` the centred LL band and Ω a random
+    /// `fourier × 3` matrix of standard deviation `fourier_scale` — a function of the histogram
+    /// of the band's colours, so exactly invariant to where the colours are (rotation,
+    /// perspective, crop, scale), and every feature is 0 on black (a black background carries
+    /// nothing). See [`HiddenDecoder::forward_band`].
+    #[config(default = 0)]
+    pub fourier: usize,
+    /// Standard deviation of Ω's entries (per unit of the centred band, whose range is 2).
+    #[config(default = 8.0)]
+    pub fourier_scale: f64,
+    /// Pixels darker than this (|rgb| of the band, in [0, 1] units) are left out of the pooled
+    /// features, smoothly: weight `1 − exp(−(|v|/τ)⁴)`, `v = u + 1`. A black background,
+    /// and the clamped noise or JPEG ringing an attack leaves on it, then carries nothing;
+    /// the features are averaged over the pixels that count (not diluted by the background).
+    /// 0 = every pixel counts equally.
+    #[config(default = 0.0)]
+    pub fourier_dark: f64,
 }
 
 impl HiddenDecoderConfig {
@@ -197,6 +215,9 @@ impl HiddenDecoderConfig {
             self.bits > 0 && self.channels > 0,
             "bits and channels must be positive"
         );
+        if self.fourier > 0 {
+            return self.init_fourier(device);
+        }
         let mut layers = Vec::with_capacity(self.depth + 2);
         let k = self.kernel.max(1) | 1;
         layers.push(ConvBnRelu::with_kernel(
@@ -224,7 +245,35 @@ impl HiddenDecoderConfig {
         ));
         HiddenDecoder {
             layers,
+            fourier: None,
+            fourier_dark: 0.0,
             linear: LinearConfig::new(self.bits, self.bits).init(device),
+            bits: self.bits,
+            dwt_levels: self.dwt_levels,
+            input_gain: self.input_gain,
+        }
+    }
+
+    /// The colour-Fourier decoder: Ω ~ N(0, fourier_scale²) from the device's RNG, the bias
+    /// Ω·1 (so each feature is sin(Ω·(u + 1)), 0 on black), and a random linear head.
+    fn init_fourier(&self, device: &Device) -> HiddenDecoder {
+        use burn::module::Param;
+        use burn::tensor::Distribution;
+        let f = self.fourier;
+        let omega = Tensor::<4>::random(
+            [f, 3, 1, 1],
+            Distribution::Normal(0.0, self.fourier_scale),
+            device,
+        );
+        let bias = omega.clone().sum_dim(1).reshape([f]);
+        let mut conv = Conv2dConfig::new([3, f], [1, 1]).init(device);
+        conv.weight = Param::from_tensor(omega);
+        conv.bias = Some(Param::from_tensor(bias));
+        HiddenDecoder {
+            layers: Vec::new(),
+            fourier: Some(conv),
+            fourier_dark: self.fourier_dark,
+            linear: LinearConfig::new(f, self.bits).init(device),
             bits: self.bits,
             dwt_levels: self.dwt_levels,
             input_gain: self.input_gain,
@@ -236,6 +285,9 @@ impl HiddenDecoderConfig {
 #[derive(Module, Debug)]
 pub struct HiddenDecoder {
     layers: Vec<ConvBnRelu>,
+    /// The colour-Fourier projection ([`HiddenDecoderConfig::fourier`]); `layers` is then empty.
+    fourier: Option<Conv2d>,
+    fourier_dark: f64,
     linear: Linear,
     bits: usize,
     dwt_levels: usize,
@@ -273,6 +325,23 @@ impl HiddenDecoder {
         } else {
             band.mul_scalar(self.input_gain)
         };
+        if let Some(omega) = &self.fourier {
+            let features = omega.forward(x.clone()).sin();
+            let [b, f, _, _] = features.dims();
+            if self.fourier_dark <= 0.0 {
+                let pooled = adaptive_avg_pool2d(features, [1, 1]).reshape([b, f]);
+                return self.linear.forward(pooled);
+            }
+            // |v|² / τ², v = u + 1 (the band's colours in [0, 2]).
+            let tau2 = (2.0 * self.fourier_dark).powi(2);
+            let r = x.add_scalar(1.0).powi_scalar(2).sum_dim(1).div_scalar(tau2);
+            let w = r.powi_scalar(2).neg().exp().neg().add_scalar(1.0);
+            let num = adaptive_avg_pool2d(features * w.clone(), [1, 1]).reshape([b, f]);
+            let den = adaptive_avg_pool2d(w, [1, 1])
+                .reshape([b, 1])
+                .add_scalar(1e-6);
+            return self.linear.forward(num / den);
+        }
         for layer in &self.layers {
             x = layer.forward(x);
         }
@@ -750,6 +819,58 @@ mod tests {
         // Wrong architecture: refused.
         let other = HiddenDecoderConfig::new(32).with_channels(8).with_depth(1);
         assert!(HiddenDecoder::load(&other, &path, &device()).is_err());
+    }
+
+    #[test]
+    fn colour_fourier_decoder_reads_the_colours_not_where_they_are() {
+        let config = HiddenDecoderConfig::new(16)
+            .with_fourier(32)
+            .with_fourier_scale(8.0)
+            .with_fourier_dark(0.1);
+        let dec = config.init(&device());
+        // A 64² object on a black background (its values kept clear of the dark cut-off).
+        let object: Vec<f32> = {
+            let mut rng = Lcg(11);
+            (0..3 * 64 * 64)
+                .map(|_| 0.3 + 0.7 * rng.uniform())
+                .collect()
+        };
+        let obj = Tensor::<4>::from_data(TensorData::new(object, [1, 3, 64, 64]), &device());
+        let z = to_vec(dec.forward(obj.clone()));
+        assert!(z.iter().any(|v| v.abs() > 1e-3), "logits {z:?}");
+        let close = |a: &[f32], b: &[f32], what: &str| {
+            for (x, y) in a.iter().zip(b) {
+                assert!(
+                    (x - y).abs() < 1e-4 * (1.0 + x.abs()),
+                    "{what}: {a:?} vs {b:?}"
+                );
+            }
+        };
+        // Rotated by 90° and mirrored: the LL band's colours are the same multiset.
+        let rotated = obj.clone().swap_dims(2, 3).flip([3]);
+        close(&z, &to_vec(dec.forward(rotated)), "rotation");
+        close(&z, &to_vec(dec.forward(obj.clone().flip([2]))), "mirror");
+        // Shown smaller in a larger black frame (more background): the same logits.
+        let framed = Tensor::<4>::zeros([1, 3, 128, 192], &device())
+            .slice_assign([0..1, 0..3, 32..96, 64..128], obj.clone());
+        close(&z, &to_vec(dec.forward(framed)), "black frame");
+        // Other colours: other logits.
+        let other = to_vec(dec.forward(obj.clone().mul_scalar(0.9)));
+        assert!(z.iter().zip(&other).any(|(a, b)| (a - b).abs() > 1e-3));
+        // The frozen decoder passes a gradient to the image.
+        let x = obj.autodiff().require_grad();
+        let grads = dec.frozen().forward(x.clone()).sum().backward();
+        let g = to_vec(x.grad(&grads).expect("image gradient"));
+        assert!(g.iter().all(|v| v.is_finite()) && g.iter().any(|v| *v != 0.0));
+        // Save / load keeps the random frequencies.
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("fourier.bpk");
+        let dec = config.init(&device());
+        let y = image(1, 64, 64, 3);
+        let before = to_vec(dec.forward(y.clone()));
+        dec.save(&path).unwrap();
+        let loaded = HiddenDecoder::load(&config, &path, &device()).unwrap();
+        assert_eq!(to_vec(loaded.forward(y)), before);
     }
 
     #[test]

@@ -90,6 +90,12 @@ pub struct OptTrainConfig {
     pub kernel: usize,
     /// Gain on the decoder's input band.
     pub input_gain: f64,
+    /// Colour-Fourier features instead of convolutions (0 = off; [`HiddenDecoderConfig::fourier`]).
+    pub fourier: usize,
+    /// Standard deviation of their frequencies.
+    pub fourier_scale: f64,
+    /// Their dark cut-off ([`HiddenDecoderConfig::fourier_dark`]).
+    pub fourier_dark: f64,
     /// The probe run on the held-out images at the end (stored in the sidecar); `None` skips it.
     pub final_probe: Option<ProbeOptions>,
     /// Fit a Stable-Signature whitening of the logits on this many clean training crops at the
@@ -129,6 +135,9 @@ impl Default for OptTrainConfig {
             norm: Norm::Group,
             kernel: 3,
             input_gain: 1.0,
+            fourier: 0,
+            fourier_scale: 8.0,
+            fourier_dark: 0.1,
             final_probe: Some(ProbeOptions {
                 psnrs: vec![36.0, 38.0, 40.0],
                 repeats: 1,
@@ -186,6 +195,9 @@ impl OptTrainConfig {
             .with_norm(self.norm)
             .with_kernel(self.kernel)
             .with_input_gain(self.input_gain)
+            .with_fourier(self.fourier)
+            .with_fourier_scale(self.fourier_scale)
+            .with_fourier_dark(self.fourier_dark)
     }
 
     /// PSNR bound of step `k`.
@@ -576,6 +588,9 @@ impl OptTrainer {
                     norm: c.norm,
                     kernel: c.kernel,
                     input_gain: c.input_gain,
+                    fourier: c.fourier,
+                    fourier_scale: c.fourier_scale,
+                    fourier_dark: c.fourier_dark,
                 },
                 encoder: None,
                 strength: 0.0,

@@ -26,7 +26,8 @@
 //!   [`crate::embed::mask::MaskConfig::position`] (0 by default).
 //! - **Fidelity bound** [`FinetuneConfig::target_psnr`]: when a step's renders fall below it,
 //!   the carriers' offsets from the planned scene are scaled back (the 2D probe's projection,
-//!   `decoder::probe`), and once more, exactly, on every training view at the end.
+//!   `decoder::probe`), and once more, exactly, on every training view at the end (coupled:
+//!   every Gaussian's offset).
 //! - `coupled` (ablation "w/o decoupling"): one joint loss λ_vis·L_vis + λ_wm·L_wm, its
 //!   gradient applied to every Gaussian without masks.
 //!
@@ -146,7 +147,8 @@ pub struct FinetuneConfig {
     /// Fidelity bound of the training views (dB; 0 = off), held as the 2D probe holds its bound
     /// (`decoder::probe`): when a step's renders fall below it, every carrier's offset from the
     /// planned scene is scaled by 10^((PSNR − target)/20), which scales their change of the
-    /// image by about that factor. Decoupled only.
+    /// image by about that factor. Coupled, every Gaussian is on the watermark route, so every
+    /// Gaussian's offset is scaled.
     pub target_psnr: f32,
     /// Whether the carriers may also move their geometry (opacity, rotation, scale, and means
     /// by the position mask) on the watermark route. Off by default: the message is written in
@@ -789,6 +791,13 @@ pub fn finetune(
     let mut route = RouteMomentum::new(&g);
     let mut vis_route = RouteMomentum::new(&g);
     let is_compensator: Vec<bool> = masks.is_carrier.iter().map(|&c| !c).collect();
+    // The Gaussians the fidelity bound scales back: those on the watermark route.
+    let everyone = vec![true; masks.is_carrier.len()];
+    let bounded: &[bool] = if cfg.coupled {
+        &everyone
+    } else {
+        &masks.is_carrier
+    };
     let mut rng = EotRng::new(cfg.seed);
     let mut order: Vec<usize> = Vec::new();
     let mut wm_norm_sum = vec![0.0f64; g.len()];
@@ -1034,9 +1043,9 @@ pub fn finetune(
         } else {
             f32::INFINITY
         };
-        let projection = if !cfg.coupled && cfg.target_psnr > 0.0 && psnr < cfg.target_psnr {
+        let projection = if cfg.target_psnr > 0.0 && psnr < cfg.target_psnr {
             let f = 10f32.powf((psnr - cfg.target_psnr) / 20.0);
-            shrink_offsets(&mut g, scene, &masks.is_carrier, f);
+            shrink_offsets(&mut g, scene, bounded, f);
             f
         } else {
             1.0
@@ -1073,14 +1082,14 @@ pub fn finetune(
 
     // The per-step bound acts on the renders before each update; hold it exactly at the end:
     // the mean PSNR of every training view, re-rendered, scaled back onto the bound.
-    if !cfg.coupled && cfg.target_psnr > 0.0 {
+    if cfg.target_psnr > 0.0 {
         for _ in 0..4 {
             let psnr = views_psnr(&g, views, render_opts)?;
             if psnr >= cfg.target_psnr {
                 break;
             }
             let f = 10f32.powf((psnr - cfg.target_psnr) / 20.0);
-            shrink_offsets(&mut g, scene, &masks.is_carrier, f);
+            shrink_offsets(&mut g, scene, bounded, f);
         }
     }
 
@@ -1282,6 +1291,24 @@ mod tests {
         );
         assert!(bound.log.iter().any(|s| s.wm_projection < 1.0));
         assert!(free.log.iter().all(|s| s.wm_projection == 1.0));
+        // Coupled, the bound holds every Gaussian the joint loss moves.
+        let coupled = |target: f32| {
+            let cfg = FinetuneConfig {
+                coupled: true,
+                target_psnr: target,
+                wm_lr_scale: 20.0,
+                views_per_step: 4,
+                ..config(25)
+            };
+            let out = finetune(&g, &mk, &views, &m, &msg, &cfg, |_| {
+                ControlFlow::Continue(())
+            })
+            .unwrap();
+            mean_psnr(&out.gaussians, &views, &opts)
+        };
+        let (c_free, c_bound) = (coupled(0.0), coupled(40.0));
+        assert!(c_free < 38.0, "coupled writes too weak: {c_free} dB");
+        assert!(c_bound > 39.0, "coupled, bound 40 dB: {c_bound} dB");
         // Colour only (the default): no carrier's geometry moved, some colour did.
         let h = &bound.gaussians;
         assert!((0..g.len()).any(|i| h.sh_dc[i] != g.sh_dc[i]));
@@ -1304,6 +1331,7 @@ mod tests {
             let cfg = FinetuneConfig {
                 coupled: true,
                 wm_lr_scale: scale,
+                target_psnr: 0.0,
                 ..config(1)
             };
             let out = finetune(&g, &mk, &views, &m, &msg, &cfg, |_| {
