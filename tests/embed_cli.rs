@@ -150,6 +150,77 @@ fn embed_writes_scene_attribution_and_report_that_agree() {
 }
 
 #[test]
+fn a_reference_is_reported_and_verify_reads_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = scene(dir.path());
+    let out = dir.path().join("marked.ply");
+    let report = dir.path().join("report.json");
+    let v = ok_json(
+        &bin()
+            .arg("embed")
+            .arg(&input)
+            .args(VIEWS)
+            .args(["--message", "c0ffee42", "--steps", "1", "--reference"])
+            .arg("--out")
+            .arg(&out)
+            .arg("--report")
+            .arg(&report)
+            .output()
+            .unwrap(),
+    );
+    assert_eq!(v["options"]["reference"], true);
+    let r = v["reference_logits"].as_array().expect("reference_logits");
+    assert_eq!(r.len(), 32);
+    assert!(r.iter().all(|z| z.as_f64().unwrap().is_finite()));
+    let renders = dir.path().join("renders");
+    assert!(
+        bin()
+            .arg("render")
+            .arg(&out)
+            .args(VIEWS)
+            .args(["--limit", "1", "--out"])
+            .arg(&renders)
+            .status()
+            .unwrap()
+            .success()
+    );
+    let png: Vec<_> = std::fs::read_dir(&renders)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    let plain = ok_json(
+        &bin()
+            .arg("verify")
+            .args(&png)
+            .args(["--message", "c0ffee42"])
+            .output()
+            .unwrap(),
+    );
+    let relative = ok_json(
+        &bin()
+            .arg("verify")
+            .args(&png)
+            .args(["--message", "c0ffee42", "--report"])
+            .arg(&report)
+            .output()
+            .unwrap(),
+    );
+    assert_eq!(relative["bits"], 32);
+    // Same images, same message: only the reference differs between the two decodings.
+    assert_ne!(plain["decoded"], relative["decoded"]);
+    // A report for another length is refused.
+    let bad = bin()
+        .arg("verify")
+        .args(&png)
+        .args(["--message", "c0ffee42c0ffee42", "--report"])
+        .arg(&report)
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("reference for 32 bits"));
+}
+
+#[test]
 fn bad_messages_and_sizes_fail_clearly_and_write_nothing() {
     let dir = tempfile::tempdir().unwrap();
     let input = scene(dir.path());

@@ -105,6 +105,11 @@ pub(crate) struct EmbedArgs {
     /// Ablation: no channel-wise group masks (every mask 1, routing kept).
     #[arg(long)]
     no_group_mask: bool,
+    /// Decode relative to the asset: the original's mean logits over the training views are
+    /// measured first and written to the report (`reference_logits`); pass the report to
+    /// `splatmark verify --report`. Not supported by the service yet.
+    #[arg(long)]
+    reference: bool,
     /// Ablation: one joint loss on every Gaussian, no routing.
     #[arg(long)]
     coupled: bool,
@@ -183,6 +188,7 @@ pub(crate) fn embed_cmd(a: &EmbedArgs) -> Result<()> {
         None => EmbedOptions::default(),
     };
     opts.no_group_mask |= a.no_group_mask;
+    opts.reference |= a.reference;
     if let Some(b) = &a.background {
         opts.finetune.background = background(b)?;
     }
@@ -271,6 +277,10 @@ pub(crate) struct VerifyArgs {
     /// Family-wise false-positive rate of the decision.
     #[arg(long, default_value_t = 1e-6)]
     fpr: f64,
+    /// The embedding's report (`splatmark embed --report`): when the embedding decoded relative
+    /// to the asset (`reference` option), its reference logits are subtracted here too.
+    #[arg(long)]
+    report: Option<PathBuf>,
     #[command(flatten)]
     model: ModelArgs,
 }
@@ -307,7 +317,27 @@ pub(crate) fn verify_cmd(a: &VerifyArgs) -> Result<()> {
     let hex = a.message.trim().trim_start_matches("0x");
     let bits = hex.len() * 4;
     let message = parse_hex(hex, bits)?;
-    let model = load_model(&a.model, bits, false)?;
+    let mut model = load_model(&a.model, bits, false)?;
+    if let Some(p) = &a.report {
+        let text = std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?;
+        let r: serde_json::Value = serde_json::from_slice(&text)
+            .with_context(|| format!("{} is not JSON", p.display()))?;
+        if r.get("message_hex").is_none() {
+            bail!("{} is not an embedding report", p.display());
+        }
+        let reference: Option<Vec<f32>> = serde_json::from_value(r["reference_logits"].clone())
+            .with_context(|| format!("{}: reference_logits", p.display()))?;
+        if let Some(z) = reference {
+            if z.len() != bits {
+                bail!(
+                    "{}: reference for {} bits, the message has {bits}",
+                    p.display(),
+                    z.len()
+                );
+            }
+            model = model.with_reference(z);
+        }
+    }
     let images = read_images(&a.images)?;
     let device = DeviceChoice::from(a.model.device).device();
     let report = crate::decoder::eval::decode_images(&model, &images, &device);

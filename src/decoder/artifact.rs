@@ -462,11 +462,15 @@ pub fn is_shipped(bits: usize) -> bool {
 }
 
 /// A trained model ready for inference: frozen decoder (and encoder), sidecar, device.
-#[derive(Debug)]
+#[derive(Debug, Clone)]
 pub struct WatermarkModel {
     pub sidecar: Sidecar,
     pub decoder: HiddenDecoder,
     pub encoder: Option<Encoder>,
+    /// The asset reference ([`with_reference`](Self::with_reference)): the unmarked asset's
+    /// own mean logits, subtracted from every (whitened) logit vector. `None` for the plain
+    /// decoder.
+    pub reference: Option<Vec<f32>>,
 }
 
 impl WatermarkModel {
@@ -510,6 +514,7 @@ impl WatermarkModel {
             sidecar,
             decoder: dec,
             encoder: enc,
+            reference: None,
         })
     }
 
@@ -606,10 +611,33 @@ impl WatermarkModel {
     /// autodiff device gradients flow back to `images`.
     pub fn forward(&self, images: Tensor<4>) -> Tensor<2> {
         let z = self.decoder.forward(images);
-        match &self.sidecar.whitening {
+        let z = match &self.sidecar.whitening {
             Some(w) => w.apply(z),
             None => z,
+        };
+        match &self.reference {
+            Some(r) => {
+                let device = z.device();
+                let r = Tensor::<2>::from_data(TensorData::new(r.clone(), [1, r.len()]), &device);
+                z.sub(r)
+            }
+            None => z,
         }
+    }
+
+    /// The model decoding relative to an asset: `reference` (the unmarked asset's mean
+    /// logits over its views, [`crate::embed::pipeline::reference_logits`]) is subtracted from
+    /// every logit vector, so the unmarked asset itself decodes to logits near 0 — no bit
+    /// starts stuck at the value the asset's colours happen to give it, and the message only
+    /// has to move each bit past the asset's own view-to-view spread (informed detection: the
+    /// owner has the original).
+    ///
+    /// # Panics
+    /// If `reference` does not have one value per bit.
+    pub fn with_reference(mut self, reference: Vec<f32>) -> Self {
+        assert_eq!(reference.len(), self.bits(), "one reference value per bit");
+        self.reference = Some(reference);
+        self
     }
 
     /// Raw (never whitened) logits, one vector per image.

@@ -202,6 +202,10 @@ pub struct HiddenDecoderConfig {
     /// 0 = every pixel counts equally.
     #[config(default = 0.0)]
     pub fourier_dark: f64,
+    /// Seed of Ω and of the linear head (drawn on the host, so a decoder is reproducible from
+    /// its configuration).
+    #[config(default = 0)]
+    pub fourier_seed: u64,
 }
 
 impl HiddenDecoderConfig {
@@ -254,26 +258,46 @@ impl HiddenDecoderConfig {
         }
     }
 
-    /// The colour-Fourier decoder: Ω ~ N(0, fourier_scale²) from the device's RNG, the bias
-    /// Ω·1 (so each feature is sin(Ω·(u + 1)), 0 on black), and a random linear head.
+    /// The colour-Fourier decoder: Ω ~ N(0, fourier_scale²), the bias Ω·1 (so each feature is
+    /// sin(Ω·(u + 1)), 0 on black), and a linear head with N(0, 1/F) weights and no bias, all
+    /// drawn from `fourier_seed` on the host.
     fn init_fourier(&self, device: &Device) -> HiddenDecoder {
         use burn::module::Param;
-        use burn::tensor::Distribution;
         let f = self.fourier;
-        let omega = Tensor::<4>::random(
-            [f, 3, 1, 1],
-            Distribution::Normal(0.0, self.fourier_scale),
-            device,
-        );
-        let bias = omega.clone().sum_dim(1).reshape([f]);
+        let mut rng = crate::attack::diff::EotRng::new(self.fourier_seed ^ 0x464f_5552);
+        let mut normals = |n: usize, sd: f64| -> Vec<f32> {
+            let mut v = Vec::with_capacity(n + 1);
+            while v.len() < n {
+                let (a, b) = rng.normal_pair();
+                v.push((a * sd) as f32);
+                v.push((b * sd) as f32);
+            }
+            v.truncate(n);
+            v
+        };
+        let omega = normals(3 * f, self.fourier_scale);
+        let bias: Vec<f32> = omega.chunks_exact(3).map(|w| w.iter().sum()).collect();
+        let head = normals(f * self.bits, 1.0 / (f as f64).sqrt());
         let mut conv = Conv2dConfig::new([3, f], [1, 1]).init(device);
-        conv.weight = Param::from_tensor(omega);
-        conv.bias = Some(Param::from_tensor(bias));
+        conv.weight = Param::from_tensor(Tensor::<4>::from_data(
+            TensorData::new(omega, [f, 3, 1, 1]),
+            device,
+        ));
+        conv.bias = Some(Param::from_tensor(Tensor::<1>::from_data(
+            TensorData::new(bias, [f]),
+            device,
+        )));
+        let mut linear = LinearConfig::new(f, self.bits).init(device);
+        linear.weight = Param::from_tensor(Tensor::<2>::from_data(
+            TensorData::new(head, [f, self.bits]),
+            device,
+        ));
+        linear.bias = Some(Param::from_tensor(Tensor::<1>::zeros([self.bits], device)));
         HiddenDecoder {
             layers: Vec::new(),
             fourier: Some(conv),
             fourier_dark: self.fourier_dark,
-            linear: LinearConfig::new(f, self.bits).init(device),
+            linear,
             bits: self.bits,
             dwt_levels: self.dwt_levels,
             input_gain: self.input_gain,
@@ -862,12 +886,16 @@ mod tests {
         let grads = dec.frozen().forward(x.clone()).sum().backward();
         let g = to_vec(x.grad(&grads).expect("image gradient"));
         assert!(g.iter().all(|v| v.is_finite()) && g.iter().any(|v| *v != 0.0));
-        // Save / load keeps the random frequencies.
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("fourier.bpk");
+        // Reproducible from the configuration; another seed, another decoder.
         let dec = config.init(&device());
         let y = image(1, 64, 64, 3);
         let before = to_vec(dec.forward(y.clone()));
+        assert_eq!(to_vec(config.init(&device()).forward(y.clone())), before);
+        let reseeded = config.clone().with_fourier_seed(1).init(&device());
+        assert_ne!(to_vec(reseeded.forward(y.clone())), before);
+        // Save / load keeps the random frequencies.
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("fourier.bpk");
         dec.save(&path).unwrap();
         let loaded = HiddenDecoder::load(&config, &path, &device()).unwrap();
         assert_eq!(to_vec(loaded.forward(y)), before);

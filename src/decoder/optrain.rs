@@ -198,6 +198,7 @@ impl OptTrainConfig {
             .with_fourier(self.fourier)
             .with_fourier_scale(self.fourier_scale)
             .with_fourier_dark(self.fourier_dark)
+            .with_fourier_seed(self.seed)
     }
 
     /// PSNR bound of step `k`.
@@ -610,6 +611,7 @@ impl OptTrainer {
             },
             decoder,
             encoder: None,
+            reference: None,
         })
     }
 }

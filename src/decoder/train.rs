@@ -981,6 +981,7 @@ impl Trainer {
             sidecar: Sidecar::new(c, None),
             decoder: net.decoder.frozen(),
             encoder: Some(net.encoder.freeze()),
+            reference: None,
         }
     }
 

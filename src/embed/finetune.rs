@@ -330,7 +330,7 @@ pub struct ViewsCheck {
 
 /// The logits of the training views of `g` as a dispute decodes them: each rendered to an
 /// 8-bit image, decoded and the logits averaged ([`decode_images`], what `/v1/verify` runs).
-fn views_logits(
+pub(crate) fn views_logits(
     g: &Gaussians,
     views: &[View],
     model: &WatermarkModel,
@@ -1154,6 +1154,7 @@ mod tests {
             sidecar,
             decoder,
             encoder: None,
+            reference: None,
         }
     }
 
@@ -1318,6 +1319,21 @@ mod tests {
             assert_eq!(h.rotations[i], g.rotations[i]);
             assert_eq!(h.means[i], g.means[i]);
         }
+    }
+
+    #[test]
+    fn a_reference_centres_the_original_on_its_own_views() {
+        let (g, views, opts) = setup();
+        let m = model(8);
+        let r = crate::embed::pipeline::reference_logits(&g, &views, &m, &opts).unwrap();
+        assert_eq!(r.len(), 8);
+        assert!(r.iter().any(|z| z.abs() > 1e-3), "{r:?}");
+        let centred = m.clone().with_reference(r.clone());
+        let z = views_logits(&g, &views, &centred, &opts).unwrap();
+        assert!(z.iter().all(|v| v.abs() < 1e-4), "{z:?}");
+        // Measured through an already-centred model, the reference is still the plain one.
+        let again = crate::embed::pipeline::reference_logits(&g, &views, &centred, &opts).unwrap();
+        assert_eq!(again, r);
     }
 
     #[test]

@@ -27,6 +27,11 @@ pub struct EmbedOptions {
     pub finetune: FinetuneConfig,
     /// Ablation `--no-group-mask`: every mask is 1 (routing kept).
     pub no_group_mask: bool,
+    /// Decode relative to the asset ([`WatermarkModel::with_reference`]): the original scene's
+    /// mean logits over the training views are measured first, finetuning writes the message
+    /// relative to them, and the report carries them ([`EmbedReport::reference_logits`]) for
+    /// verification.
+    pub reference: bool,
 }
 
 impl EmbedOptions {
@@ -102,6 +107,10 @@ pub struct EmbedReport {
     pub views_check: Option<ViewsCheck>,
     pub timings: Timings,
     pub options: EmbedOptions,
+    /// The original's mean logits over the training views when `options.reference` is on:
+    /// verification subtracts them ([`WatermarkModel::with_reference`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reference_logits: Option<Vec<f32>>,
 }
 
 /// The watermarked asset and its explanation.
@@ -163,6 +172,19 @@ pub fn embed(
     let t_plan = t.elapsed().as_secs_f64();
 
     let t = Instant::now();
+    let reference = if opts.reference {
+        Some(reference_logits(g, &views, model, &ro)?)
+    } else {
+        None
+    };
+    let centred;
+    let model = match &reference {
+        Some(r) => {
+            centred = model.clone().with_reference(r.clone());
+            &centred
+        }
+        None => model,
+    };
     let ft = finetune(
         p.scene(),
         &p.masks,
@@ -223,6 +245,7 @@ pub fn embed(
             total: t_all.elapsed().as_secs_f64(),
         },
         options: opts.clone(),
+        reference_logits: reference,
     };
     let _ = progress(Progress {
         phase: Phase::Done,
@@ -236,6 +259,22 @@ pub fn embed(
         report,
         log: ft.log,
     })
+}
+
+/// The asset reference of `original`: its logits over `views` as a dispute decodes them (each
+/// view rendered to 8 bits, decoded, the logits averaged), with `model`'s own reference, if any,
+/// left out.
+pub fn reference_logits(
+    original: &Gaussians,
+    views: &[View],
+    model: &WatermarkModel,
+    opts: &RenderOptions,
+) -> Result<Vec<f32>, EmbedError> {
+    let mut plain = model.clone();
+    plain.reference = None;
+    Ok(super::finetune::views_logits(
+        original, views, &plain, opts,
+    )?)
 }
 
 /// Splits views into training and held-out sets: every `every`-th view (k % every == every − 1,

@@ -32,7 +32,6 @@ use crate::scene::format::read_scene;
 use crate::scene::orbit::{OrbitOptions, orbit_cameras};
 use crate::scene::{Camera, Gaussians, Limits};
 use crate::verify::eval::{EvalSettings, SceneEval, evaluate_scene};
-use crate::verify::message::random_message;
 
 /// A scene of the bench.
 #[derive(Clone, Debug, Serialize)]
@@ -288,6 +287,16 @@ pub fn views(
     Ok((train, orbit_cameras(g, &unseen)?))
 }
 
+/// The payload of one run: drawn from `seed`, the scene's name and the length, so a rerun of
+/// the bench writes the same messages and reports the same figures.
+pub fn bench_message(seed: u64, scene: &str, bits: usize) -> Vec<bool> {
+    let name = scene.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
+        (h ^ u64::from(b)).wrapping_mul(0x100_0000_01b3)
+    });
+    let mut rng = crate::attack::diff::EotRng::new(seed ^ name ^ (bits as u64).rotate_left(32));
+    (0..bits).map(|_| rng.next_u64() & 1 == 1).collect()
+}
+
 /// Runs the bench; `log` gets a line per phase.
 pub fn run(
     opts: &QualityOptions,
@@ -310,7 +319,7 @@ pub fn run(
                 Some(d) => WatermarkModel::load(&d.join(format!("decoder-{bits}.bpk")), device)?,
                 None => WatermarkModel::shipped(bits, device)?,
             };
-            let payload = random_message(bits);
+            let payload = bench_message(opts.seed, name, bits);
             log(&format!(
                 "{name}, {bits} bits: embedding over {} training views ({} Gaussians, {}²)…",
                 train.len(),
@@ -341,6 +350,11 @@ pub fn run(
                 render: opts.embed.render_options(),
                 fpr: opts.fpr,
                 seed: opts.seed,
+            };
+            // Decoded as a dispute would: relative to the asset when the embedding measured it.
+            let model = match &out.report.reference_logits {
+                Some(r) => model.with_reference(r.clone()),
+                None => model,
             };
             let eval = evaluate_scene(&g, &out.scene, &unseen, &model, &payload, &settings)?;
             let targets = check(&eval, bits);
