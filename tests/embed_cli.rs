@@ -206,6 +206,19 @@ fn a_reference_is_reported_and_verify_reads_it() {
             .unwrap(),
     );
     assert_eq!(relative["bits"], 32);
+    // eval reads the same report.
+    let e = ok_json(
+        &bin()
+            .arg("eval")
+            .arg(&input)
+            .arg(&out)
+            .args(VIEWS)
+            .args(["--message", "c0ffee42", "--report"])
+            .arg(&report)
+            .output()
+            .unwrap(),
+    );
+    assert_eq!(e["views"], 1);
     // Same images, same message: only the reference differs between the two decodings.
     assert_ne!(plain["decoded"], relative["decoded"]);
     // A report for another length is refused.

@@ -313,31 +313,37 @@ fn print_progress(p: &crate::embed::pipeline::Progress, every: usize) {
     }
 }
 
+/// `model` decoding relative to the asset when `report` (an embedding report) carries reference
+/// logits; unchanged without a report or without a reference in it.
+fn with_report_reference(model: WatermarkModel, report: Option<&Path>) -> Result<WatermarkModel> {
+    let Some(p) = report else {
+        return Ok(model);
+    };
+    let text = std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?;
+    let r: serde_json::Value =
+        serde_json::from_slice(&text).with_context(|| format!("{} is not JSON", p.display()))?;
+    if r.get("message_hex").is_none() {
+        bail!("{} is not an embedding report", p.display());
+    }
+    let reference: Option<Vec<f32>> = serde_json::from_value(r["reference_logits"].clone())
+        .with_context(|| format!("{}: reference_logits", p.display()))?;
+    Ok(match reference {
+        Some(z) if z.len() != model.bits() => bail!(
+            "{}: reference for {} bits, the message has {}",
+            p.display(),
+            z.len(),
+            model.bits()
+        ),
+        Some(z) => model.with_reference(z),
+        None => model,
+    })
+}
+
 pub(crate) fn verify_cmd(a: &VerifyArgs) -> Result<()> {
     let hex = a.message.trim().trim_start_matches("0x");
     let bits = hex.len() * 4;
     let message = parse_hex(hex, bits)?;
-    let mut model = load_model(&a.model, bits, false)?;
-    if let Some(p) = &a.report {
-        let text = std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?;
-        let r: serde_json::Value = serde_json::from_slice(&text)
-            .with_context(|| format!("{} is not JSON", p.display()))?;
-        if r.get("message_hex").is_none() {
-            bail!("{} is not an embedding report", p.display());
-        }
-        let reference: Option<Vec<f32>> = serde_json::from_value(r["reference_logits"].clone())
-            .with_context(|| format!("{}: reference_logits", p.display()))?;
-        if let Some(z) = reference {
-            if z.len() != bits {
-                bail!(
-                    "{}: reference for {} bits, the message has {bits}",
-                    p.display(),
-                    z.len()
-                );
-            }
-            model = model.with_reference(z);
-        }
-    }
+    let model = with_report_reference(load_model(&a.model, bits, false)?, a.report.as_deref())?;
     let images = read_images(&a.images)?;
     let device = DeviceChoice::from(a.model.device).device();
     let report = crate::decoder::eval::decode_images(&model, &images, &device);
@@ -384,6 +390,10 @@ pub(crate) struct EvalSceneArgs {
     /// Print JSON (the only output format; accepted for scripts).
     #[arg(long)]
     json: bool,
+    /// The embedding's report: its reference logits, if any, are subtracted (as `verify
+    /// --report`).
+    #[arg(long)]
+    report: Option<PathBuf>,
     #[command(flatten)]
     model: ModelArgs,
     #[command(flatten)]
@@ -405,7 +415,10 @@ pub(crate) fn eval_scene_cmd(a: &EvalSceneArgs) -> Result<()> {
     if held.is_empty() {
         bail!("no held-out views; use more views or --holdout-every 1");
     }
-    let model = load_model(&a.model, message.len(), false)?;
+    let model = with_report_reference(
+        load_model(&a.model, message.len(), false)?,
+        a.report.as_deref(),
+    )?;
     let settings = EvalSettings {
         render: RenderOptions {
             background: background(&a.background)?,
