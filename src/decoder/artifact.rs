@@ -113,6 +113,22 @@ pub struct DecoderArch {
     pub fourier_dark: f64,
 }
 
+impl From<&HiddenDecoderConfig> for DecoderArch {
+    fn from(d: &HiddenDecoderConfig) -> Self {
+        Self {
+            channels: d.channels,
+            depth: d.depth,
+            dwt_levels: d.dwt_levels,
+            norm: d.norm,
+            kernel: d.kernel,
+            input_gain: d.input_gain,
+            fourier: d.fourier,
+            fourier_scale: d.fourier_scale,
+            fourier_dark: d.fourier_dark,
+        }
+    }
+}
+
 fn is_zero(n: &usize) -> bool {
     *n == 0
 }
@@ -305,17 +321,7 @@ impl Sidecar {
         Self {
             format: FORMAT.into(),
             bits: config.bits,
-            decoder: DecoderArch {
-                channels: d.channels,
-                depth: d.depth,
-                dwt_levels: d.dwt_levels,
-                norm: d.norm,
-                kernel: d.kernel,
-                input_gain: d.input_gain,
-                fourier: d.fourier,
-                fourier_scale: d.fourier_scale,
-                fourier_dark: d.fourier_dark,
-            },
+            decoder: DecoderArch::from(&d),
             encoder: Some(EncoderArch {
                 kind: config.encoder,
                 tile: config.encoder_tile,

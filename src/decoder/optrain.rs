@@ -582,17 +582,7 @@ impl OptTrainer {
             sidecar: Sidecar {
                 format: FORMAT.into(),
                 bits: c.bits,
-                decoder: DecoderArch {
-                    channels: c.decoder_channels,
-                    depth: c.decoder_depth,
-                    dwt_levels: 2,
-                    norm: c.norm,
-                    kernel: c.kernel,
-                    input_gain: c.input_gain,
-                    fourier: c.fourier,
-                    fourier_scale: c.fourier_scale,
-                    fourier_dark: c.fourier_dark,
-                },
+                decoder: DecoderArch::from(&c.decoder_config()),
                 encoder: None,
                 strength: 0.0,
                 whitening: None,
