@@ -110,6 +110,7 @@ async fn run(n: u32) -> Result<(), Box<dyn std::error::Error>> {
             claimed.lease_token,
             asset,
             &claimed.key,
+            None,
             &recs,
             serde_json::json!({ "bench": true }),
             AuditEntry::new("bench", "watermark.publish"),

@@ -806,6 +806,7 @@ async fn a_result_is_published_once_when_a_worker_dies_mid_job() {
                 cameras_format: None,
             },
             &dead.key,
+            None,
             &[],
             json!({}),
             splatmark::store::AuditEntry {

@@ -1,7 +1,8 @@
 //! `POST /v1/verify` — a dispute: rendered images (PNG/JPEG, multipart field `image`, repeated)
 //! and optionally `asset_id`. The images are decoded once per message length (logits averaged
 //! over the images) and tested against the asset's message — or, without an asset id, against
-//! every registered message — with p-values corrected for the number of candidates.
+//! every registered message — each read relative to its asset reference when the job registered
+//! one, with p-values corrected for the number of candidates.
 
 use std::collections::BTreeMap;
 use std::sync::atomic::Ordering;
@@ -18,7 +19,7 @@ use super::assets::multipart_err;
 use super::auth::Caller;
 use super::error::{ApiError, ApiResult};
 use crate::decoder::eval::decode_images;
-use crate::store::{AssetKind, AuditEntry, NewVerification, Scope};
+use crate::store::{AssetKind, AuditEntry, NewVerification, Registration, Scope};
 use crate::verify::dispute::{Candidate, decoded_hex, judge};
 
 /// Largest image file accepted for verification.
@@ -97,6 +98,15 @@ fn decode_image(bytes: &[u8], i: usize, max_side: u32) -> ApiResult<image::RgbIm
     Ok(img)
 }
 
+/// What the images are tested against for a registration: its payload and reference.
+fn candidate(r: Registration) -> Candidate {
+    Candidate {
+        asset_id: r.asset_id,
+        payload: r.key.payload(),
+        reference: r.reference,
+    }
+}
+
 /// `POST /v1/verify`.
 pub async fn verify(
     State(st): State<AppState>,
@@ -168,11 +178,8 @@ pub async fn verify(
             };
             let mut c = vec![];
             for id in ids {
-                if let Some(key) = st.store.key_of(id).await? {
-                    c.push(Candidate {
-                        asset_id: id,
-                        payload: key.payload(),
-                    });
+                if let Some(r) = st.store.registration(id).await? {
+                    c.push(candidate(r));
                 }
             }
             if c.is_empty() {
@@ -184,13 +191,10 @@ pub async fn verify(
         }
         None => st
             .store
-            .all_keys()
+            .registrations()
             .await?
             .into_iter()
-            .map(|(asset_id, key)| Candidate {
-                asset_id,
-                payload: key.payload(),
-            })
+            .map(candidate)
             .collect(),
     };
     let mut lengths: Vec<usize> = candidates.iter().map(|c| c.payload.len()).collect();
@@ -221,7 +225,7 @@ pub async fn verify(
             let r = decoders
                 .with(&cfg, n, |m, d| decode_images(m, &imgs, d))
                 .map_err(ApiError::internal)?;
-            out.insert(n, r.logits.iter().map(|&z| z > 0.0).collect::<Vec<bool>>());
+            out.insert(n, r.logits.clone());
             logits.insert(
                 n,
                 json!({"confidence": r.confidence, "per_image": r.per_image}),

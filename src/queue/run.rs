@@ -36,6 +36,8 @@ pub struct JobOutput {
     pub sh_degree: u8,
     pub records: Vec<AttributionRecord>,
     pub report: serde_json::Value,
+    /// The asset reference the dispute subtracts (`embed.reference`), one logit per bit.
+    pub reference: Option<Vec<f32>>,
     pub train_views: usize,
     pub held_out_views: usize,
 }
@@ -102,6 +104,7 @@ pub fn execute(
         sh_degree: e.scene.sh_degree,
         records: e.records,
         report,
+        reference: e.report.reference_logits.clone(),
         train_views: train.len(),
         held_out_views: held.len(),
     })

@@ -70,14 +70,6 @@ impl JobOptions {
                 "options.embed.finetune.extra_steps: steps + extra_steps must be at most {MAX_STEPS}"
             ));
         }
-        if embed.reference {
-            // The key does not store a reference yet, so /v1/verify could not decode such an
-            // asset: refuse rather than produce a watermark nobody can check.
-            return Err(
-                "options.embed.reference is not supported by the service yet (only by the CLI)"
-                    .into(),
-            );
-        }
         if embed.finetune.check_every == 0 {
             return Err("options.embed.finetune.check_every must be at least 1".into());
         }
@@ -176,7 +168,6 @@ mod tests {
                 json!({"embed": {"finetune": {"check_every": 0}}}),
                 "check_every",
             ),
-            (json!({"embed": {"reference": true}}), "reference"),
         ] {
             let o: JobOptions = serde_json::from_value(v).unwrap();
             let e = o.resolve(&cfg).unwrap_err();

@@ -395,7 +395,16 @@ async fn run_job(ctx: &Ctx, w: &WorkerSpec, c: Claimed) {
     };
     match ctx
         .store
-        .publish_result(job.id, token, new, &c.key, &out.records, out.report, audit)
+        .publish_result(
+            job.id,
+            token,
+            new,
+            &c.key,
+            out.reference.as_deref(),
+            &out.records,
+            out.report,
+            audit,
+        )
         .await
     {
         Ok(a) => {

@@ -11,6 +11,13 @@
 //! however biased the decoder's bits are on natural images (they are: `docs/DECODER.md`).
 //! Without the mask an owner could register the decoder's favourite bit pattern as message and
 //! "detect" it in images that carry no watermark at all.
+//!
+//! # The asset reference
+//! A job that decodes relative to the asset (`embed.reference`) also registers the original's
+//! mean logits over its training views ([`Registration::reference`]); a dispute subtracts them
+//! before reading bits. They are computed from the unmarked original, so they are independent of
+//! the mask and the Binomial(n, ½) argument above still holds. Sealed too (AAD
+//! `<asset id>/reference`), so that they cannot be changed unnoticed.
 
 use super::crypto::Sealed;
 use super::error::{Result, StoreError};
@@ -67,6 +74,37 @@ impl std::fmt::Debug for WatermarkKey {
             .field("bits", &self.bits())
             .finish_non_exhaustive()
     }
+}
+
+/// A registered watermark: what a dispute tests images against.
+#[derive(Clone, Debug)]
+pub struct Registration {
+    /// The watermarked asset.
+    pub asset_id: Uuid,
+    pub key: WatermarkKey,
+    /// The asset reference (one logit per bit), when the job decoded relative to the asset.
+    pub reference: Option<Vec<f32>>,
+}
+
+/// The associated data of a reference sealed for asset `id`.
+fn reference_aad(id: &str) -> String {
+    format!("{id}/reference")
+}
+
+/// A reference must have one finite logit per bit.
+pub(crate) fn validate_reference(reference: &[f32], bits: usize) -> Result<()> {
+    if reference.len() != bits {
+        return Err(StoreError::invalid(format!(
+            "the reference has {} logits for {bits} bits",
+            reference.len()
+        )));
+    }
+    if reference.iter().any(|z| !z.is_finite()) {
+        return Err(StoreError::invalid(
+            "the reference holds a non-finite logit",
+        ));
+    }
+    Ok(())
 }
 
 /// The associated data of a mask sealed next to a message sealed under `aad`.
@@ -130,51 +168,102 @@ impl Store {
 }
 
 impl Store {
-    /// The key of a watermarked asset (`None` when it has none); `Crypto` if it does not
-    /// decrypt.
-    pub async fn key_of(&self, asset: Uuid) -> Result<Option<WatermarkKey>> {
-        let id = asset.to_string();
-        let row = sqlx::query(
-            "SELECT nonce, ciphertext, mask_nonce, mask_ct FROM keys WHERE asset_id = ?",
-        )
-        .bind(&id)
-        .fetch_optional(&self.pool)
-        .await?;
-        match row {
-            None => Ok(None),
-            Some(r) => self.open_key(&r, "nonce", "ciphertext", &id).map(Some),
-        }
+    /// Opens a `keys` row (asset id, key, mask and reference columns); `Crypto` when any part does not
+    /// open or does not fit the key.
+    fn open_registration(&self, r: &SqliteRow) -> Result<Registration> {
+        let id: String = r.try_get("asset_id")?;
+        let key = self.open_key(r, "nonce", "ciphertext", &id)?;
+        let nonce: Option<Vec<u8>> = r.try_get("reference_nonce")?;
+        let ct: Option<Vec<u8>> = r.try_get("reference_ct")?;
+        let reference = match (nonce, ct) {
+            (None, None) => None,
+            (Some(n), Some(c)) => {
+                let bytes = self.cipher().open(&n, &c, reference_aad(&id).as_bytes())?;
+                if bytes.len() != 4 * key.bits() {
+                    return Err(StoreError::Crypto);
+                }
+                Some(
+                    bytes
+                        .chunks_exact(4)
+                        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                        .collect(),
+                )
+            }
+            _ => return Err(StoreError::Crypto),
+        };
+        Ok(Registration {
+            asset_id: parse_uuid(&id)?,
+            key,
+            reference,
+        })
     }
 
-    /// Every registered key with its asset, oldest first (verification without an asset id).
-    pub async fn all_keys(&self) -> Result<Vec<(Uuid, WatermarkKey)>> {
+    /// The registration of a watermarked asset (`None` when it has none); `Crypto` if it does
+    /// not decrypt.
+    pub async fn registration(&self, asset: Uuid) -> Result<Option<Registration>> {
+        let row = sqlx::query(
+            "SELECT asset_id, nonce, ciphertext, mask_nonce, mask_ct, reference_nonce, \
+             reference_ct FROM keys WHERE asset_id = ?",
+        )
+        .bind(asset.to_string())
+        .fetch_optional(&self.pool)
+        .await?;
+        row.map(|r| self.open_registration(&r)).transpose()
+    }
+
+    /// Every registration, oldest first (verification without an asset id).
+    pub async fn registrations(&self) -> Result<Vec<Registration>> {
         let rows = sqlx::query(
-            "SELECT asset_id, nonce, ciphertext, mask_nonce, mask_ct FROM keys \
-             ORDER BY created_at, asset_id",
+            "SELECT asset_id, nonce, ciphertext, mask_nonce, mask_ct, reference_nonce, \
+             reference_ct FROM keys ORDER BY created_at, asset_id",
         )
         .fetch_all(&self.pool)
         .await?;
-        rows.iter()
-            .map(|r| {
-                let id: String = r.try_get("asset_id")?;
-                let key = self.open_key(r, "nonce", "ciphertext", &id)?;
-                Ok((parse_uuid(&id)?, key))
-            })
-            .collect()
+        rows.iter().map(|r| self.open_registration(r)).collect()
     }
 
-    /// Seals and inserts the key of `asset` on `conn` (inside the caller's transaction).
+    /// The key of a watermarked asset (`None` when it has none); `Crypto` if it does not
+    /// decrypt.
+    pub async fn key_of(&self, asset: Uuid) -> Result<Option<WatermarkKey>> {
+        Ok(self.registration(asset).await?.map(|r| r.key))
+    }
+
+    /// Every registered key with its asset, oldest first.
+    pub async fn all_keys(&self) -> Result<Vec<(Uuid, WatermarkKey)>> {
+        Ok(self
+            .registrations()
+            .await?
+            .into_iter()
+            .map(|r| (r.asset_id, r.key))
+            .collect())
+    }
+
+    /// Seals and inserts the key of `asset` and its reference, if any, on `conn` (inside the
+    /// caller's transaction).
     pub(crate) async fn insert_key_in(
         &self,
         conn: &mut SqliteConnection,
         asset: Uuid,
         key: &WatermarkKey,
+        reference: Option<&[f32]>,
     ) -> Result<()> {
         let id = asset.to_string();
         let sealed = self.seal_key(key, &id)?;
+        let reference = match reference {
+            None => None,
+            Some(r) => {
+                validate_reference(r, key.bits())?;
+                let bytes: Vec<u8> = r.iter().flat_map(|z| z.to_le_bytes()).collect();
+                Some(self.cipher().seal(&bytes, reference_aad(&id).as_bytes())?)
+            }
+        };
+        let (reference_nonce, reference_ct) = match reference {
+            Some(s) => (Some(s.nonce), Some(s.ciphertext)),
+            None => (None, None),
+        };
         sqlx::query(
-            "INSERT INTO keys (asset_id, bits, nonce, ciphertext, mask_nonce, mask_ct, created_at) \
-             VALUES (?, ?, ?, ?, ?, ?, ?)",
+            "INSERT INTO keys (asset_id, bits, nonce, ciphertext, mask_nonce, mask_ct, \
+             reference_nonce, reference_ct, created_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
         )
         .bind(&id)
         .bind(key.bits() as i64)
@@ -182,6 +271,8 @@ impl Store {
         .bind(sealed.message.ciphertext)
         .bind(sealed.mask.nonce)
         .bind(sealed.mask.ciphertext)
+        .bind(reference_nonce)
+        .bind(reference_ct)
         .bind(time::now())
         .execute(&mut *conn)
         .await

@@ -4,7 +4,7 @@ use super::assets::{self, Asset, AssetKind, NewAsset};
 use super::attribution;
 use super::audit::{self, AuditEntry};
 use super::error::{Result, StoreError};
-use super::keys::{WatermarkKey, validate_message};
+use super::keys::{WatermarkKey, validate_message, validate_reference};
 use super::{Store, time};
 use crate::embed::attribution::AttributionRecord;
 use sqlx::Row;
@@ -14,9 +14,10 @@ impl Store {
     /// Publishes the result of `job` in one `BEGIN IMMEDIATE` transaction, all or nothing: checks
     /// that the job is running under `token` (else `LeaseLost`, nothing written), inserts the
     /// watermarked asset (`source_job_id` = the job, unique; `parent_id` = the job's asset when
-    /// `None`), its sealed key (which must be the job's), every attribution record and the embed `report`, marks the
-    /// job done with `result_asset_id`, and appends the audit row (`asset_id`, `job_id` filled in
-    /// when `None`). A second publish, a stale token or a lease taken over by another worker
+    /// `None`), its sealed key (which must be the job's) and asset `reference` (one finite logit
+    /// per bit, when the job decoded relative to the asset), every attribution record and the
+    /// embed `report`, marks the job done with `result_asset_id`, and appends the audit row
+    /// (`asset_id`, `job_id` filled in when `None`). A second publish, a stale token or a lease taken over by another worker
     /// writes nothing. `Invalid` when the asset or message does not match the job (the job keeps
     /// running; the worker should `fail` it).
     #[allow(clippy::too_many_arguments)]
@@ -26,11 +27,15 @@ impl Store {
         token: Uuid,
         mut asset: NewAsset,
         key: &WatermarkKey,
+        reference: Option<&[f32]>,
         attribution: &[AttributionRecord],
         report: serde_json::Value,
         mut audit_entry: AuditEntry,
     ) -> Result<Asset> {
         validate_message(&key.message)?;
+        if let Some(r) = reference {
+            validate_reference(r, key.bits())?;
+        }
         if asset.kind != AssetKind::Watermarked {
             return Err(StoreError::invalid("a job publishes a watermarked asset"));
         }
@@ -91,7 +96,8 @@ impl Store {
             .bind(seq)
             .execute(&mut *tx)
             .await?;
-        self.insert_key_in(&mut tx, stored.id, key).await?;
+        self.insert_key_in(&mut tx, stored.id, key, reference)
+            .await?;
         attribution::insert_in(&mut tx, seq, attribution).await?;
         let now = time::now();
         sqlx::query(

@@ -201,6 +201,7 @@ async fn publish(
             c.lease_token,
             asset,
             &c.key,
+            None,
             recs,
             serde_json::json!({ "psnr": 41.5 }),
             entry("watermark.publish"),
@@ -575,6 +576,87 @@ async fn tampered_key_ciphertext_is_a_crypto_error() {
 }
 
 #[tokio::test]
+async fn an_asset_reference_is_registered_sealed_and_checked() {
+    let (dir, store) = setup().await;
+    let a = original(&store).await;
+    enqueue(&store, a.id, 3).await;
+    let c = store.claim("w1", LONG).await.expect("claim").expect("job");
+    let bits = c.key.bits();
+    let publish_with = |reference: Vec<f32>| {
+        let store = &store;
+        let c = &c;
+        async move {
+            store
+                .publish_result(
+                    c.job.id,
+                    c.lease_token,
+                    watermarked(store, a.id, 10, b"w"),
+                    &c.key,
+                    Some(&reference),
+                    &records(10),
+                    serde_json::Value::Null,
+                    entry("watermark.publish"),
+                )
+                .await
+        }
+    };
+    // One logit per bit, all finite, or nothing is written and the job keeps running.
+    for bad in [vec![0.5; bits - 1], {
+        let mut r = vec![0.5; bits];
+        r[1] = f32::NAN;
+        r
+    }] {
+        let r = publish_with(bad).await;
+        assert!(matches!(r, Err(StoreError::Invalid(_))), "{r:?}");
+    }
+    assert_eq!(scalar(&dir, "SELECT COUNT(*) FROM keys").await, 0);
+    let reference: Vec<f32> = (0..bits).map(|i| i as f32 * 0.25 - 1.0).collect();
+    let wm = publish_with(reference.clone()).await.expect("publish");
+    let reg = store
+        .registration(wm.id)
+        .await
+        .expect("read")
+        .expect("registered");
+    assert_eq!((reg.asset_id, &reg.key), (wm.id, &c.key));
+    assert_eq!(reg.reference.as_deref(), Some(&reference[..]));
+    let all = store.registrations().await.expect("all");
+    assert_eq!(all.len(), 1);
+    assert_eq!(all[0].reference, Some(reference));
+    // Sealed: a changed byte, or half of it missing, does not open.
+    let mut conn = raw(&dir).await;
+    sqlx::query(
+        "UPDATE keys SET reference_ct = substr(reference_ct, 1, 5) || x'00' || \
+         substr(reference_ct, 7)",
+    )
+    .execute(&mut conn)
+    .await
+    .expect("tamper");
+    assert!(matches!(
+        store.registration(wm.id).await,
+        Err(StoreError::Crypto)
+    ));
+    sqlx::query("UPDATE keys SET reference_ct = NULL")
+        .execute(&mut conn)
+        .await
+        .expect("half");
+    assert!(matches!(
+        store.registrations().await,
+        Err(StoreError::Crypto)
+    ));
+    // A key without a reference (every row before migration 0003) reads as none.
+    sqlx::query("UPDATE keys SET reference_nonce = NULL")
+        .execute(&mut conn)
+        .await
+        .expect("none");
+    let reg = store
+        .registration(wm.id)
+        .await
+        .expect("read")
+        .expect("registered");
+    assert_eq!(reg.reference, None);
+}
+
+#[tokio::test]
 async fn every_job_gets_a_secret_random_mask_and_its_result_keeps_it() {
     let (dir, store) = setup().await;
     let a = original(&store).await;
@@ -605,6 +687,7 @@ async fn every_job_gets_a_secret_random_mask_and_its_result_keeps_it() {
             c.lease_token,
             watermarked(&store, a.id, 10, b"w0"),
             &other,
+            None,
             &records(10),
             serde_json::Value::Null,
             entry("watermark.publish"),
@@ -1217,6 +1300,7 @@ async fn a_publish_failing_half_way_rolls_back_everything() {
             c.lease_token,
             short,
             &c.key,
+            None,
             &records(10),
             serde_json::Value::Null,
             entry("watermark.publish"),
@@ -1232,6 +1316,7 @@ async fn a_publish_failing_half_way_rolls_back_everything() {
                 message: c.key.message[..31].to_vec(),
                 mask: c.key.mask[..31].to_vec(),
             },
+            None,
             &records(10),
             serde_json::Value::Null,
             entry("watermark.publish"),
