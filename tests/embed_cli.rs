@@ -160,7 +160,7 @@ fn a_reference_is_reported_and_verify_reads_it() {
             .arg("embed")
             .arg(&input)
             .args(VIEWS)
-            .args(["--message", "c0ffee42", "--steps", "1", "--reference"])
+            .args(["--message", "c0ffee42", "--steps", "1"])
             .arg("--out")
             .arg(&out)
             .arg("--report")
@@ -231,6 +231,20 @@ fn a_reference_is_reported_and_verify_reads_it() {
         .unwrap();
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("reference for 32 bits"));
+    // Plain decoding on request: no reference measured or reported.
+    let v = ok_json(
+        &bin()
+            .arg("embed")
+            .arg(&input)
+            .args(VIEWS)
+            .args(["--message", "c0ffee42", "--steps", "1", "--no-reference"])
+            .arg("--out")
+            .arg(dir.path().join("plain.ply"))
+            .output()
+            .unwrap(),
+    );
+    assert_eq!(v["options"]["reference"], false);
+    assert!(v["reference_logits"].is_null());
 }
 
 #[test]
@@ -296,7 +310,12 @@ fn a_partial_config_file_sets_what_it_names_and_keeps_the_rest() {
         (rec - 0.8).abs() < 1e-6,
         "unnamed fields keep defaults: {rec}"
     );
-    assert_eq!(o["finetune"]["views_per_step"], 2);
+    // Unnamed fields keep the default recipe (coupled, colour only, 4 views per step,
+    // relative to the asset) …
+    assert_eq!(o["finetune"]["views_per_step"], 4);
+    assert_eq!(o["finetune"]["coupled"], true);
+    assert_eq!(o["finetune"]["lr"]["means"], 0.0);
+    assert_eq!(o["reference"], true);
     assert_eq!(o["no_group_mask"], true);
     assert_eq!(v["mask_wm"], serde_json::json!([1.0, 1.0, 1.0, 1.0, 1.0]));
 
@@ -314,4 +333,22 @@ fn a_partial_config_file_sets_what_it_names_and_keeps_the_rest() {
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("is not valid embedding options"));
     assert!(!dir.path().join("n.ply").exists());
+
+    // … and --paper starts from the paper's recipe instead.
+    let v = ok_json(
+        &bin()
+            .arg("embed")
+            .arg(&input)
+            .args(VIEWS)
+            .args(["--message", "0123abcd", "--steps", "1", "--paper"])
+            .arg("--out")
+            .arg(dir.path().join("p.ply"))
+            .output()
+            .unwrap(),
+    );
+    let o = &v["options"];
+    assert_eq!(o["finetune"]["coupled"], false);
+    assert_eq!(o["finetune"]["views_per_step"], 2);
+    assert!(o["finetune"]["lr"]["opacity"].as_f64().unwrap() > 0.0);
+    assert_eq!(o["reference"], false);
 }

@@ -105,14 +105,17 @@ pub(crate) struct EmbedArgs {
     /// Ablation: no channel-wise group masks (every mask 1, routing kept).
     #[arg(long)]
     no_group_mask: bool,
-    /// Decode relative to the asset: the original's mean logits over the training views are
-    /// measured first and written to the report (`reference_logits`); pass the report to
-    /// `splatmark verify --report`. Not supported by the service yet.
+    /// Decode plainly instead of relative to the asset. By default the original's mean logits
+    /// over the training views are measured first and written to the report
+    /// (`reference_logits`): pass the report to `splatmark verify --report` / `eval --report`.
     #[arg(long)]
-    reference: bool,
-    /// Ablation: one joint loss on every Gaussian, no routing.
-    #[arg(long)]
-    coupled: bool,
+    no_reference: bool,
+    /// The paper's recipe instead of the default one: decoupled routes (carriers take the
+    /// watermark loss, compensators the visual loss, channel masks), INRIA's learning rates on
+    /// every channel, 2 views per step, plain decoding. --no-sbag and --no-group-mask are its
+    /// ablations.
+    #[arg(long, conflicts_with = "config")]
+    paper: bool,
     /// Skip contribution pruning.
     #[arg(long)]
     no_prune: bool,
@@ -185,10 +188,11 @@ pub(crate) fn embed_cmd(a: &EmbedArgs) -> Result<()> {
             serde_json::from_slice(&bytes)
                 .with_context(|| format!("{} is not valid embedding options", p.display()))?
         }
+        None if a.paper => EmbedOptions::paper(),
         None => EmbedOptions::default(),
     };
     opts.no_group_mask |= a.no_group_mask;
-    opts.reference |= a.reference;
+    opts.reference &= !a.no_reference;
     if let Some(b) = &a.background {
         opts.finetune.background = background(b)?;
     }
@@ -207,7 +211,6 @@ pub(crate) fn embed_cmd(a: &EmbedArgs) -> Result<()> {
             bail!("--no-sbag draws as many carriers as the adaptive budget; drop --budget")
         }
     };
-    opts.finetune.coupled |= a.coupled;
     if let Some(s) = a.steps {
         opts.finetune.steps = s;
     }

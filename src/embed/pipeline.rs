@@ -19,22 +19,45 @@ use crate::render::{RenderError, RenderOptions};
 use crate::scene::{Camera, Gaussians};
 use crate::verify::message::to_hex;
 
-/// Everything that decides an embedding.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+/// Everything that decides an embedding. The default is the recipe measured to carry the
+/// message to unseen views ([`FinetuneConfig::default`], decoded relative to the asset);
+/// [`EmbedOptions::paper`] is the paper's.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct EmbedOptions {
     pub plan: EmbedConfig,
     pub finetune: FinetuneConfig,
     /// Ablation `--no-group-mask`: every mask is 1 (routing kept).
     pub no_group_mask: bool,
-    /// Decode relative to the asset ([`WatermarkModel::with_reference`]): the original scene's
-    /// mean logits over the training views are measured first, finetuning writes the message
-    /// relative to them, and the report carries them ([`EmbedReport::reference_logits`]) for
-    /// verification.
+    /// Decode relative to the asset ([`WatermarkModel::with_reference`]; on by default): the
+    /// original scene's mean logits over the training views are measured first, finetuning
+    /// writes the message relative to them, and the report carries them
+    /// ([`EmbedReport::reference_logits`]) for verification (the service registers them with
+    /// the key).
     pub reference: bool,
 }
 
+impl Default for EmbedOptions {
+    fn default() -> Self {
+        Self {
+            plan: EmbedConfig::default(),
+            finetune: FinetuneConfig::default(),
+            no_group_mask: false,
+            reference: true,
+        }
+    }
+}
+
 impl EmbedOptions {
+    /// The paper's recipe: [`FinetuneConfig::paper`], plain decoding (no asset reference).
+    pub fn paper() -> Self {
+        Self {
+            finetune: FinetuneConfig::paper(),
+            reference: false,
+            ..Self::default()
+        }
+    }
+
     /// Render options of every render of the embedding.
     pub fn render_options(&self) -> RenderOptions {
         self.finetune.render_options()
