@@ -735,9 +735,17 @@ mod tests {
             let m = WatermarkModel::shipped(bits, &d).unwrap_or_else(|e| panic!("{bits}: {e}"));
             assert_eq!(m.bits(), bits);
             assert!(is_shipped(bits));
-            assert!(m.encoder.is_some(), "{bits}: no encoder shipped");
-            let record = m.sidecar.record.as_ref().expect("training record");
-            assert!(record.held_out.is_some(), "{bits}: no held-out figures");
+            // The shipped decoders are the seeded colour-Fourier ones (docs/DECODER.md): no
+            // encoder, a whitening fitted on images, and the command that made them.
+            assert_eq!(m.sidecar.decoder.fourier, 128, "{bits}");
+            assert!(m.encoder.is_none(), "{bits}");
+            assert_eq!(
+                m.sidecar.whitening.as_ref().expect("whitening").mean.len(),
+                bits
+            );
+            let record = m.sidecar.record.as_ref().expect("record");
+            let command = record.command.as_deref().expect("command");
+            assert!(command.contains("--fourier 128"), "{command}");
         }
         assert!(matches!(
             WatermarkModel::shipped(40, &d),
