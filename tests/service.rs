@@ -267,11 +267,11 @@ fn stored_blobs(data: &Path) -> Vec<PathBuf> {
     out
 }
 
-/// The job options of the round trips: a small orbit so CI can afford real embeddings, the
-/// strong setting (`coupled`, carriers' learning rate ×5, no fidelity bound: `target_psnr` 0,
-/// since the bound now also holds coupled runs) with which the shipped decoder reads the message
-/// back from the training views (docs/RESULTS.md), and up to 300 extra steps until
-/// those views decode every bit (a random payload sometimes needs them: 29 of 32 once at 300).
+/// The job options of the toy round trips: a small orbit so CI can afford real embeddings, the
+/// default recipe without its fidelity bound (`target_psnr` 0) and at ×5 learning rate, so that
+/// the 1 500-Gaussian toy scene reliably carries a random payload to its training views, and up
+/// to 300 extra steps until those views decode every bit. How well the default recipe embeds at
+/// the paper's fidelity is the donut test's business (views the job never saw, bound 38 dB).
 fn small_job(message: &str, steps: usize) -> Value {
     json!({
         "bits": 32,
@@ -294,9 +294,10 @@ fn training_views(g: &Gaussians, spec: &JobSpec) -> Vec<splatmark::scene::Camera
 async fn upload_watermark_download_render_verify_round_trip() {
     // A false-positive rate of 1e-3 (threshold 26 of 32 matching bits) instead of the default
     // 1e-6 (30 of 32): this 1 500-Gaussian toy scene does not carry every random 32-bit payload
-    // (in eight runs it stopped at 28–29 bits four times, even with the 300 extra steps); how
-    // well the pipeline embeds is measured on real scenes (the donut test below at 1e-6,
-    // docs/RESULTS.md). This test is about the service around the pipeline.
+    // (with the CNN decoder shipped before December 2026, in eight runs it stopped at 28–29
+    // bits four times, even with the 300 extra steps); how well the pipeline embeds is measured
+    // on real scenes (the donut test below, on views the job never saw, and docs/RESULTS.md).
+    // This test is about the service around the pipeline.
     let mut t = TestApp::start_with(|c| c.fpr = 1e-3).await;
     let k = t.keys().await;
     let original = object_scene(1500, 1, 4);
@@ -921,12 +922,28 @@ fn shared_scene(rel: &str) -> Option<PathBuf> {
     }
 }
 
+/// PSNR (dB) of two 8-bit images of one size.
+fn psnr(a: &image::RgbImage, b: &image::RgbImage) -> f64 {
+    let se: f64 = a
+        .as_raw()
+        .iter()
+        .zip(b.as_raw())
+        .map(|(&x, &y)| (f64::from(x) - f64::from(y)).powi(2))
+        .sum();
+    let mse = se / a.as_raw().len() as f64 / 255.0 / 255.0;
+    -10.0 * mse.max(1e-12).log10()
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_real_scene_round_trips_through_the_service() {
+async fn a_real_scene_is_detected_on_views_the_job_never_saw() {
     let Some(path) = shared_scene("donut/fused.ply") else {
         return;
     };
-    let mut t = TestApp::start().await;
+    // A false-positive rate of 1e-4 (27 of 32 bits) instead of the default 1e-6 (30 of 32):
+    // every run embeds a fresh random payload (the key's mask), and at 128² with 8 training
+    // views the held-out views decode ~31 of 32 bits on averaged logits (docs/RESULTS.md), so
+    // 1e-6 would leave one bit of slack; the bench measures the embedding at 1e-6.
+    let mut t = TestApp::start_with(|c| c.fpr = 1e-4).await;
     let k = t.keys().await;
     let bytes = std::fs::read(&path).unwrap();
     let original = read_scene_bytes(&bytes, Some("ply"), &Limits::default()).unwrap();
@@ -936,15 +953,13 @@ async fn a_real_scene_round_trips_through_the_service() {
         .as_str()
         .unwrap()
         .to_string();
-    // Four orbit views at 128², every view trained on (docs/RESULTS.md, "service round trip").
+    // The default embedding (no "embed" options) on 16 orbit views at 128², every second one
+    // held out of training: the dispute renders only those held-out views
+    // (docs/RESULTS.md, "service round trip").
     let body = json!({
         "bits": 32,
         "message": "c0ffee42",
-        "options": {
-            "orbit": {"count": 4, "width": 128, "height": 128},
-            "holdout_every": 0,
-            "embed": {"finetune": {"steps": 300, "extra_steps": 300, "coupled": true, "wm_lr_scale": 5.0, "views_per_step": 4, "target_psnr": 0.0}},
-        }
+        "options": {"orbit": {"count": 16, "width": 128, "height": 128}, "holdout_every": 2},
     });
     let job: Value = t
         .client
@@ -974,28 +989,37 @@ async fn a_real_scene_round_trips_through_the_service() {
         .unwrap();
     let marked = read_scene_bytes(&bytes, Some("ply"), &Limits::default()).unwrap();
     let spec: JobSpec = serde_json::from_value(job["options"].clone()).unwrap();
-    let views = training_views(&original, &spec);
+    assert!(
+        spec.embed.reference && spec.embed.finetune.coupled,
+        "{spec:?}"
+    );
+    let cams = orbit_cameras(&original, &spec.orbit).unwrap();
+    let (train, unseen) = split_views(&cams, spec.holdout_every);
+    assert_eq!((train.len(), unseen.len()), (8, 8));
     let ro = RenderOptions {
         background: spec.embed.finetune.background,
         ..RenderOptions::default()
     };
-    let v = t
-        .verify(
-            &k.verifier,
-            &render_views(&marked, &views, &ro).unwrap(),
-            None,
-        )
-        .await;
-    eprintln!("donut: {}", v["best"]);
+    let marked_views = render_views(&marked, &unseen, &ro).unwrap();
+    let original_views = render_views(&original, &unseen, &ro).unwrap();
+    let psnrs: Vec<f64> = marked_views
+        .iter()
+        .zip(&original_views)
+        .map(|(a, b)| psnr(a, b))
+        .collect();
+    let mean = psnrs.iter().sum::<f64>() / psnrs.len() as f64;
+    let worst = psnrs.iter().copied().fold(f64::INFINITY, f64::min);
+    // The bound holds the training views at 38 dB; unseen views measured 36.4 dB at worst.
+    assert!(mean >= 37.0, "unseen views at {mean:.1} dB on average");
+    let v = t.verify(&k.verifier, &marked_views, None).await;
+    eprintln!(
+        "donut, unseen views ({mean:.1} dB on average, {worst:.1} at worst): {}",
+        v["best"]
+    );
     assert_eq!(v["detected"], true, "{v}");
     assert_eq!(v["best"]["asset_id"].as_str().unwrap(), marked_id);
-    let v0 = t
-        .verify(
-            &k.verifier,
-            &render_views(&original, &views, &ro).unwrap(),
-            None,
-        )
-        .await;
+    assert_eq!(v["best"]["reference"], true);
+    let v0 = t.verify(&k.verifier, &original_views, None).await;
     assert_eq!(v0["detected"], false, "{v0}");
     t.stop().await;
 }
