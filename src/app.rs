@@ -61,6 +61,7 @@ impl App {
             rx.clone(),
         );
         let verify_slots = Arc::new(tokio::sync::Semaphore::new(cfg.verify_concurrency.max(1)));
+        let upload_slots = Arc::new(tokio::sync::Semaphore::new(cfg.upload_concurrency.max(1)));
         let state = AppState {
             store: store.clone(),
             cfg,
@@ -69,6 +70,7 @@ impl App {
             decoders: Arc::new(Decoders::new(Device::flex())),
             metrics: Arc::new(Metrics::default()),
             verify_slots,
+            upload_slots,
         };
         let app = router(state);
         let rx_gc = rx.clone();

@@ -68,6 +68,17 @@ pub struct Config {
     pub verify_concurrency: usize,
     /// How long a verification waits for a decoding slot, in milliseconds.
     pub verify_wait_ms: u64,
+    /// Uploads parsed at once (a parse holds the whole decoded scene in memory: ≈ 240 bytes
+    /// per Gaussian of SH degree 3, so up to ≈ 2.4 GB at `max_gaussians`); further ones wait up
+    /// to `upload_wait_ms`, then get 503 with `Retry-After`. Their bytes are spooled to disk
+    /// meanwhile, not held in memory.
+    pub upload_concurrency: usize,
+    /// How long an upload waits for a parsing slot, in milliseconds.
+    pub upload_wait_ms: u64,
+    /// A multipart body (upload, verification) that sends nothing for this long is answered
+    /// 408 and dropped, in milliseconds (slow clients cannot hold a connection for the whole
+    /// request timeout).
+    pub body_idle_timeout_ms: u64,
     /// Family-wise false-positive rate of verification decisions.
     pub fpr: f64,
     /// Job lease; workers heartbeat every third of it.
@@ -101,6 +112,9 @@ impl Default for Config {
             max_verify_pixels: 1 << 24,
             verify_concurrency: 2,
             verify_wait_ms: 2000,
+            upload_concurrency: 2,
+            upload_wait_ms: 10_000,
+            body_idle_timeout_ms: 30_000,
             fpr: 1e-6,
             lease_seconds: 60,
             max_attempts: 3,
@@ -134,6 +148,11 @@ pub enum ConfigError {
 }
 
 impl Config {
+    /// [`Config::body_idle_timeout_ms`] as a duration.
+    pub fn body_idle_timeout(&self) -> std::time::Duration {
+        std::time::Duration::from_millis(self.body_idle_timeout_ms)
+    }
+
     /// Defaults overlaid with the TOML file `path` (when given).
     pub fn from_file(path: Option<&Path>) -> Result<Self, ConfigError> {
         let Some(path) = path else {
@@ -196,6 +215,7 @@ impl Config {
         env!("SPLATMARK_FPR", self.fpr);
         env!("SPLATMARK_MAX_VERIFY_PIXELS", self.max_verify_pixels);
         env!("SPLATMARK_VERIFY_CONCURRENCY", self.verify_concurrency);
+        env!("SPLATMARK_UPLOAD_CONCURRENCY", self.upload_concurrency);
         env!("SPLATMARK_LEASE_SECONDS", self.lease_seconds);
         env!("SPLATMARK_MAX_ATTEMPTS", self.max_attempts);
         env!("SPLATMARK_MASTER_KEY_FILE", some self.master_key_file);
@@ -228,6 +248,12 @@ impl Config {
         }
         if self.verify_concurrency == 0 {
             return bad("verify_concurrency must be at least 1");
+        }
+        if self.body_idle_timeout_ms == 0 {
+            return bad("body_idle_timeout_ms must be at least 1");
+        }
+        if self.upload_concurrency == 0 {
+            return bad("upload_concurrency must be at least 1");
         }
         if self.max_verify_pixels < 64 * 64 {
             return bad("max_verify_pixels must allow one 64×64 image");

@@ -478,8 +478,22 @@ async fn bad_uploads_get_4xx_problems_and_leave_nothing_behind() {
     let mut bad_crc = spz_bytes(100);
     let at = bad_crc.len() - 8;
     bad_crc[at] ^= 0x40;
+    // A gzip .spz of a few kilobytes whose zeros decompress to 200 000 points (issue 13: one
+    // such 185 KB file declaring 3 M points took 870 MB of memory).
+    let spz_bomb = {
+        use std::io::Write;
+        let mut raw = b"NGSP".to_vec();
+        raw.extend_from_slice(&2u32.to_le_bytes());
+        raw.extend_from_slice(&200_000u32.to_le_bytes());
+        raw.extend_from_slice(&[0, 12, 0, 0]);
+        raw.resize(raw.len() + 200_000 * 19, 0);
+        let mut e = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
+        e.write_all(&raw).unwrap();
+        e.finish().unwrap()
+    };
     for (name, bytes, status) in [
         ("bad_crc.spz", bad_crc, StatusCode::UNPROCESSABLE_ENTITY),
+        ("bomb.spz", spz_bomb, StatusCode::UNPROCESSABLE_ENTITY),
         ("truncated.ply", truncated, StatusCode::UNPROCESSABLE_ENTITY),
         ("bomb.ply", bomb, StatusCode::PAYLOAD_TOO_LARGE),
         ("picture.ply", png, StatusCode::UNSUPPORTED_MEDIA_TYPE),
@@ -491,6 +505,12 @@ async fn bad_uploads_get_4xx_problems_and_leave_nothing_behind() {
         eprintln!("{name}: {}", p["detail"]);
         if name == "bad_crc.spz" {
             assert!(p["detail"].as_str().unwrap().contains("CRC-32"), "{p}");
+        }
+        if name == "bomb.spz" {
+            assert!(
+                p["detail"].as_str().unwrap().contains("compression bomb"),
+                "{p}"
+            );
         }
     }
     // A form without the scene field, and one with an unknown field.
@@ -1357,5 +1377,79 @@ async fn audit_time_filters_must_be_real_instants() {
         let v: Value = r.json().await.unwrap();
         assert!(!v["items"].as_array().unwrap().is_empty(), "{q}: {v}");
     }
+    t.stop().await;
+}
+
+/// The count of one status class in `/metrics`.
+async fn responses_of_class(t: &TestApp, class: &str) -> u64 {
+    let m = t
+        .client
+        .get(t.url("/metrics"))
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    let key = format!("splatmark_http_responses_total{{class=\"{class}\"}} ");
+    m.lines()
+        .find_map(|l| l.strip_prefix(&key))
+        .map_or(0, |v| v.trim().parse::<f64>().unwrap() as u64)
+}
+
+/// Starts a multipart upload by hand on a raw connection: the request head (declaring a body
+/// of 100 000 bytes) and the first bytes of the scene field, nothing more.
+async fn start_raw_upload(t: &TestApp, token: &str) -> tokio::net::TcpStream {
+    use tokio::io::AsyncWriteExt;
+    let addr = t.base.trim_start_matches("http://");
+    let mut s = tokio::net::TcpStream::connect(addr).await.unwrap();
+    let head = format!(
+        "POST /v1/assets HTTP/1.1\r\nHost: {addr}\r\nAuthorization: Bearer {token}\r\n\
+         Content-Type: multipart/form-data; boundary=XyZ\r\nContent-Length: 100000\r\n\r\n\
+         --XyZ\r\nContent-Disposition: form-data; name=\"scene\"; filename=\"s.ply\"\r\n\
+         Content-Type: application/octet-stream\r\n\r\nply\nformat binary_little_endian 1.0\n"
+    );
+    s.write_all(head.as_bytes()).await.unwrap();
+    s.flush().await.unwrap();
+    s
+}
+
+#[tokio::test]
+async fn stalled_and_vanishing_uploads_are_client_errors_not_server_errors() {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut t = TestApp::start_with(|c| c.body_idle_timeout_ms = 300).await;
+    let k = t.keys().await;
+    let before = responses_of_class(&t, "5xx").await;
+
+    // A client that stops sending mid-body gets 408 once the body has been silent for 300 ms,
+    // instead of holding the connection for the whole request timeout.
+    let mut s = start_raw_upload(&t, &k.owner).await;
+    let started = Instant::now();
+    let mut reply = vec![0u8; 4096];
+    let n = tokio::time::timeout(Duration::from_secs(20), s.read(&mut reply))
+        .await
+        .expect("the server answers a stalled body")
+        .unwrap();
+    let reply = String::from_utf8_lossy(&reply[..n]).to_string();
+    assert!(reply.starts_with("HTTP/1.1 408"), "{reply}");
+    assert!(reply.contains("application/problem+json"), "{reply}");
+    assert!(started.elapsed() < Duration::from_secs(15));
+
+    // A client that closes its side before sending what it declared: a client error.
+    let mut s = start_raw_upload(&t, &k.owner).await;
+    s.shutdown().await.unwrap();
+    let mut reply = Vec::new();
+    let _ = tokio::time::timeout(Duration::from_secs(20), s.read_to_end(&mut reply)).await;
+    let reply = String::from_utf8_lossy(&reply).to_string();
+    eprintln!("vanishing client: {:?}", reply.lines().next());
+    assert!(
+        reply.is_empty() || reply.starts_with("HTTP/1.1 400"),
+        "{reply}"
+    );
+
+    // Neither counts as a server error, and neither left a blob behind.
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    assert_eq!(responses_of_class(&t, "5xx").await, before);
+    assert!(stored_blobs(&t.data()).is_empty());
     t.stop().await;
 }

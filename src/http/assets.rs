@@ -23,8 +23,54 @@ use crate::scene::{Limits, SceneError};
 use crate::store::{Asset, AssetKind, AuditEntry, NewAsset, Scope};
 
 /// A multipart field's failure as a client error.
+/// A multipart body that cannot be read. Every such failure is the client's: a malformed form,
+/// or a body that ended early because the client disconnected or truncated it (axum reports
+/// those as 500; they are 400 here, so that they do not count as server errors).
 pub(super) fn multipart_err(e: axum::extract::multipart::MultipartError) -> ApiError {
-    ApiError::new(e.status(), "Bad multipart body", e.body_text())
+    let status = e.status();
+    if status.is_server_error() {
+        ApiError::bad_request(format!(
+            "the request body could not be read to its end (the client disconnected or sent \
+             less than it declared): {}",
+            e.body_text()
+        ))
+    } else {
+        ApiError::new(status, "Bad multipart body", e.body_text())
+    }
+}
+
+/// 408 for a body that sent nothing for `idle`.
+fn stalled(idle: std::time::Duration) -> ApiError {
+    ApiError::new(
+        axum::http::StatusCode::REQUEST_TIMEOUT,
+        "Request timeout",
+        format!(
+            "the request body sent nothing for {} ms; send it without pausing",
+            idle.as_millis()
+        ),
+    )
+}
+
+/// The next field of a multipart body, or 408 when the client stalls for `idle`.
+pub(super) async fn next_field<'a>(
+    mp: &'a mut Multipart,
+    idle: std::time::Duration,
+) -> ApiResult<Option<axum::extract::multipart::Field<'a>>> {
+    match tokio::time::timeout(idle, mp.next_field()).await {
+        Ok(r) => r.map_err(multipart_err),
+        Err(_) => Err(stalled(idle)),
+    }
+}
+
+/// The next chunk of a multipart field, or 408 when the client stalls for `idle`.
+pub(super) async fn next_chunk(
+    field: &mut axum::extract::multipart::Field<'_>,
+    idle: std::time::Duration,
+) -> ApiResult<Option<axum::body::Bytes>> {
+    match tokio::time::timeout(idle, field.chunk()).await {
+        Ok(r) => r.map_err(multipart_err),
+        Err(_) => Err(stalled(idle)),
+    }
 }
 
 /// The file name a client gave, reduced to a safe base name (metadata only: blobs are named by
@@ -44,7 +90,8 @@ pub(super) async fn spool(
 ) -> ApiResult<tempfile::NamedTempFile> {
     let tmp = st.store.blobs().temp_file().map_err(ApiError::internal)?;
     let mut out = tokio::fs::File::from_std(tmp.reopen().map_err(ApiError::internal)?);
-    while let Some(chunk) = field.chunk().await.map_err(multipart_err)? {
+    let idle = st.cfg.body_idle_timeout();
+    while let Some(chunk) = next_chunk(field, idle).await? {
         *used += chunk.len() as u64;
         if *used > budget {
             return Err(ApiError::too_large(format!(
@@ -128,7 +175,8 @@ pub async fn upload(
     let mut used = 0u64;
     let mut scene = None;
     let mut cameras = None;
-    while let Some(mut field) = mp.next_field().await.map_err(multipart_err)? {
+    let idle = st.cfg.body_idle_timeout();
+    while let Some(mut field) = next_field(&mut mp, idle).await? {
         let name = field.name().unwrap_or_default().to_string();
         let slot = match name.as_str() {
             "scene" => &mut scene,
@@ -152,9 +200,17 @@ pub async fn upload(
         max_gaussians: st.cfg.max_gaussians,
         max_file_bytes: Some(budget),
     };
+    // A parse holds the decoded scene in memory: at most `upload_concurrency` at once.
+    let permit = super::admit(
+        &st.upload_slots,
+        std::time::Duration::from_millis(st.cfg.upload_wait_ms),
+        "every upload parsing slot is busy; retry shortly",
+    )
+    .await?;
     let blobs = st.store.blobs().clone();
     let name = scene_name.clone();
     let (checked, pins, committed) = tokio::task::spawn_blocking(move || {
+        let _permit = permit; // held until the parse and the blob commit end
         let checked = check(
             scene.path(),
             name.as_deref(),

@@ -43,6 +43,21 @@ pub struct AppState {
     pub metrics: Arc<Metrics>,
     /// Decoding slots of `/v1/verify` (`verify_concurrency` permits).
     pub verify_slots: Arc<tokio::sync::Semaphore>,
+    /// Parsing slots of `POST /v1/assets` (`upload_concurrency` permits).
+    pub upload_slots: Arc<tokio::sync::Semaphore>,
+}
+
+/// Waits up to `wait` for one of `slots`; 503 with `Retry-After: 1` and `busy` as its detail when
+/// none frees up. The permit is held until dropped.
+pub(crate) async fn admit(
+    slots: &Arc<tokio::sync::Semaphore>,
+    wait: std::time::Duration,
+    busy: &str,
+) -> error::ApiResult<tokio::sync::OwnedSemaphorePermit> {
+    match tokio::time::timeout(wait, slots.clone().acquire_owned()).await {
+        Ok(Ok(permit)) => Ok(permit),
+        _ => Err(error::ApiError::busy(busy, 1)),
+    }
 }
 
 /// Frozen decoders for verification (CPU, loaded on first use): a small pool per message

@@ -15,7 +15,7 @@ use sha2::{Digest, Sha256};
 use uuid::Uuid;
 
 use super::AppState;
-use super::assets::multipart_err;
+use super::assets::{multipart_err, next_chunk, next_field};
 use super::auth::Caller;
 use super::error::{ApiError, ApiResult};
 use crate::decoder::eval::decode_images;
@@ -69,13 +69,12 @@ async fn admit(
     slots: &std::sync::Arc<tokio::sync::Semaphore>,
     wait: std::time::Duration,
 ) -> ApiResult<tokio::sync::OwnedSemaphorePermit> {
-    match tokio::time::timeout(wait, slots.clone().acquire_owned()).await {
-        Ok(Ok(permit)) => Ok(permit),
-        _ => Err(ApiError::busy(
-            "every verification slot is busy; retry shortly",
-            1,
-        )),
-    }
+    super::admit(
+        slots,
+        wait,
+        "every verification slot is busy; retry shortly",
+    )
+    .await
 }
 
 fn decode_image(bytes: &[u8], i: usize, max_side: u32) -> ApiResult<image::RgbImage> {
@@ -117,7 +116,8 @@ pub async fn verify(
     let mut images = vec![];
     let mut hashes = vec![];
     let mut asset_id: Option<Uuid> = None;
-    while let Some(mut field) = mp.next_field().await.map_err(multipart_err)? {
+    let idle = st.cfg.body_idle_timeout();
+    while let Some(mut field) = next_field(&mut mp, idle).await? {
         match field.name().unwrap_or_default() {
             "image" => {
                 if images.len() == st.cfg.max_verify_images {
@@ -127,7 +127,7 @@ pub async fn verify(
                     )));
                 }
                 let mut bytes = Vec::new();
-                while let Some(chunk) = field.chunk().await.map_err(multipart_err)? {
+                while let Some(chunk) = next_chunk(&mut field, idle).await? {
                     if bytes.len() + chunk.len() > MAX_IMAGE_BYTES {
                         return Err(ApiError::too_large(format!(
                             "image {} is larger than {MAX_IMAGE_BYTES} bytes",

@@ -24,8 +24,9 @@
 //! and a legacy stream wrapped in zstd instead of gzip.
 //!
 //! Decompression is capped at the size the header's point count implies, after that count has
-//! been checked against [`Limits`]; buffers grow with the data actually decompressed, so a tiny
-//! file claiming many points cannot force a large allocation. A legacy stream is then read to
+//! been checked against [`Limits`] and against the file's size ([`MAX_EXPANSION`]: a tiny file
+//! of compressible bytes claiming millions of points is refused before anything is
+//! decompressed); buffers grow with the data actually decompressed. A legacy stream is then read to
 //! its end, so that its container's checksum is verified (gzip's CRC-32 and length, zstd's
 //! content checksum when the frame has one: a mismatch is [`SceneError::Checksum`]); at most
 //! [`MAX_TRAILING_BYTES`] may follow the arrays there.
@@ -47,6 +48,34 @@ pub const V4_HEADER_BYTES: usize = 32;
 /// newer writers, ignored). They are decompressed, without being kept, only to reach the
 /// checksum at the end of the container.
 pub const MAX_TRAILING_BYTES: u64 = 1 << 20;
+/// Most a compressed spz may expand: its arrays may hold at most this many times the file's
+/// compressed bytes (or [`EXPANSION_FLOOR`], whichever is more). Quantised splat arrays compress
+/// by a small factor (positions, rotations and colours are near-random bytes; even all-zero
+/// higher SH bands leave the rest); a file past this ratio is a compression bomb, refused before
+/// anything is decompressed.
+pub const MAX_EXPANSION: u64 = 64;
+/// Arrays this small are accepted at any compression ratio.
+pub const EXPANSION_FLOOR: u64 = 1 << 20;
+
+/// Refuses arrays of `decoded` bytes from `compressed` bytes past [`MAX_EXPANSION`].
+fn check_expansion(
+    decoded: u64,
+    compressed: u64,
+    points: usize,
+    what: &str,
+) -> Result<(), SceneError> {
+    let cap = compressed
+        .saturating_mul(MAX_EXPANSION)
+        .max(EXPANSION_FLOOR);
+    if decoded > cap {
+        return Err(SceneError::Corrupt(format!(
+            "the {what} data declares {points} points, {decoded} bytes of arrays from {compressed} \
+             compressed bytes: more than {MAX_EXPANSION}:1, which no real spz reaches (a \
+             compression bomb?)"
+        )));
+    }
+    Ok(())
+}
 
 const FLIP_P: [f32; 3] = [1.0, -1.0, -1.0];
 /// `coordinateConverter(RUB, RDF).flipSh` for the 15 coefficients of degrees 1–3
@@ -180,12 +209,18 @@ fn read_full(r: &mut impl Read, buf: &mut [u8], what: &str) -> Result<usize, Sce
 
 /// Reads a `.spz` file (any supported container).
 pub fn read(bytes: &[u8], limits: &Limits) -> Result<Gaussians, SceneError> {
+    let compressed = Some(bytes.len() as u64);
     if bytes.starts_with(&[0x1f, 0x8b]) {
-        read_legacy(flate2::read::GzDecoder::new(bytes), limits, "gzip")
+        read_legacy(
+            flate2::read::GzDecoder::new(bytes),
+            limits,
+            "gzip",
+            compressed,
+        )
     } else if bytes.starts_with(&[0x28, 0xb5, 0x2f, 0xfd]) {
         let dec =
             zstd::stream::read::Decoder::with_buffer(bytes).map_err(|e| corrupt_io("zstd", e))?;
-        read_legacy(dec, limits, "zstd")
+        read_legacy(dec, limits, "zstd", compressed)
     } else if bytes.starts_with(&NGSP_MAGIC) {
         if bytes.len() < 8 {
             return Err(SceneError::Truncated {
@@ -196,7 +231,7 @@ pub fn read(bytes: &[u8], limits: &Limits) -> Result<Gaussians, SceneError> {
         if u32_at(bytes, 4) >= 4 {
             read_v4(bytes, limits)
         } else {
-            read_legacy(bytes, limits, "spz")
+            read_legacy(bytes, limits, "spz", None)
         }
     } else {
         Err(SceneError::UnknownFormat(
@@ -205,8 +240,14 @@ pub fn read(bytes: &[u8], limits: &Limits) -> Result<Gaussians, SceneError> {
     }
 }
 
-/// A legacy stream (16-byte header + arrays), from a decompressing reader.
-fn read_legacy<R: Read>(mut r: R, limits: &Limits, what: &str) -> Result<Gaussians, SceneError> {
+/// A legacy stream (16-byte header + arrays), from a decompressing reader of a file of
+/// `compressed` bytes (`None`: not compressed).
+fn read_legacy<R: Read>(
+    mut r: R,
+    limits: &Limits,
+    what: &str,
+    compressed: Option<u64>,
+) -> Result<Gaussians, SceneError> {
     let mut hdr = [0u8; LEGACY_HEADER_BYTES];
     let got = read_full(&mut r, &mut hdr, what)?;
     if got < LEGACY_HEADER_BYTES {
@@ -234,6 +275,9 @@ fn read_legacy<R: Read>(mut r: R, limits: &Limits, what: &str) -> Result<Gaussia
     }
     let plan = Plan::new(h, limits)?;
     let total = plan.total()?;
+    if let Some(c) = compressed {
+        check_expansion(total as u64, c, plan.n, what)?;
+    }
     // Decompress at most what the header implies; the Vec grows only with real data.
     let mut payload = Vec::new();
     match r.by_ref().take(total as u64).read_to_end(&mut payload) {
@@ -315,6 +359,8 @@ fn read_v4(bytes: &[u8], limits: &Limits) -> Result<Gaussians, SceneError> {
             actual: bytes.len() as u64,
         });
     }
+    let declared: u64 = expected.iter().map(|&(_, size)| size as u64).sum();
+    check_expansion(declared, bytes.len() as u64, plan.n, "spz v4")?;
     let mut buffers: [Vec<u8>; 6] = Default::default();
     let mut offset = toc_end as u64;
     for (j, &(attr, size)) in expected.iter().enumerate() {
@@ -720,11 +766,14 @@ mod tests {
             matches!(e, SceneError::TooManyGaussians { count: 5, max: 4 }),
             "{e}"
         );
-        // A header claiming 9 million points in a small file: Truncated, nothing big allocated.
-        let e = read_spz(&with(&|r| {
-            r[8..12].copy_from_slice(&9_000_000u32.to_le_bytes())
-        }))
-        .unwrap_err();
+        // A header claiming 9 million points in a small file: refused from the header alone
+        // (more than 64:1), nothing decompressed; uncompressed, the same lie is Truncated.
+        let lie = |r: &mut Vec<u8>| r[8..12].copy_from_slice(&9_000_000u32.to_le_bytes());
+        let e = read_spz(&with(&lie)).unwrap_err();
+        assert!(e.to_string().contains("compression bomb"), "{e}");
+        let mut r = raw.clone();
+        lie(&mut r);
+        let e = read_spz(&r).unwrap_err();
         assert!(matches!(e, SceneError::Truncated { .. }), "{e}");
         // Garbage after the gzip magic.
         let e = read_spz(&[0x1f, 0x8b, 1, 2, 3, 4, 5]).unwrap_err();
@@ -780,6 +829,37 @@ mod tests {
         assert!(matches!(e, SceneError::Corrupt(_)), "{e}");
         let z = zstd::bulk::compress(&ok, 3).unwrap();
         assert_eq!(read_spz(&z).unwrap().len(), 5);
+    }
+
+    #[test]
+    fn compression_bombs_are_refused_before_decompressing() {
+        // 200 000 points of zeros (≈ 4 MB of arrays) gzip to a few kilobytes: a 1000:1 file.
+        let n: u32 = 200_000;
+        let mut raw = b"NGSP".to_vec();
+        raw.extend_from_slice(&2u32.to_le_bytes());
+        raw.extend_from_slice(&n.to_le_bytes());
+        raw.extend_from_slice(&[0, 12, 0, 0]);
+        raw.resize(raw.len() + n as usize * 19, 0);
+        let gz = gzip(&raw);
+        assert!(gz.len() < 20_000, "{}", gz.len());
+        let e = read_spz(&gz).unwrap_err();
+        assert!(
+            matches!(&e, SceneError::Corrupt(m) if m.contains("compression bomb")),
+            "{e}"
+        );
+        let z = zstd::bulk::compress(&raw, 3).unwrap();
+        let e = read_spz(&z).unwrap_err();
+        assert!(e.to_string().contains("compression bomb"), "{e}");
+        // The same arrays uncompressed are a real (if dull) scene of 200 000 points.
+        assert_eq!(read_spz(&raw).unwrap().len(), n as usize);
+        // Real arrays compress far less: a scene of random Gaussians with SH 3.
+        let g = scene(20_000, 3, 11);
+        let gz = gzip(&legacy_bytes(&g, 3, true));
+        assert!(
+            legacy_bytes(&g, 3, true).len() as u64 > EXPANSION_FLOOR,
+            "the check must apply"
+        );
+        check_close(&read_spz(&gz).unwrap(), &g, 0.9999);
     }
 
     #[test]
