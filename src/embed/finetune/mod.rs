@@ -1,0 +1,676 @@
+//! Decoupled watermark finetuning (§3.5, eqs. `Lvis`, `avglogits`, `Lwm-eot`, `Lwm`, `gate`).
+//!
+//! Every step renders a few training views of the split scene once (CPU rasterizer), hands the
+//! images to burn for the two objectives, and back-propagates each objective's ∂L/∂image
+//! through the same render ([`crate::render::backward`], "two backward passes through one
+//! render"):
+//!
+//! - **L_wm** = λ_clean·BCE(z̄_cl, b) + λ_eot·BCE(z̄(t), b) + λ_low·L1(LL, LL★), where
+//!   z̄ = (1/|V|)·Σ_v D(q(I_v)) averages the frozen decoder's logits over the step's views
+//!   (eq. `avglogits`), t ~ p(t) is one draw of the differentiable attack family
+//!   ([`crate::attack::diff::random_composition`]) applied to every view of the step, q is the
+//!   8-bit quantisation a saved render goes through (straight-through), and LL★ are the bands of
+//!   the original scene's render (2-level Haar, [`crate::decoder::dwt`]).
+//! - **L_vis** = λ_rec·L1 + λ_dssim·(1 − SSIM) + λ_high·Σ_levels L1(LH, HL, HH) against the
+//!   original scene's renders. LPIPS needs pretrained network weights that do not ship with the
+//!   project; the D-SSIM term takes its place (the `Lvis` weights are a config, so a perceptual
+//!   term can be added beside it).
+//! - **Gate** (eq. `gate`): carriers (WM★) take ∂L_wm only, every other Gaussian (VIS) ∂L_vis
+//!   only, with INRIA's per-channel learning rates. Each route steps by
+//!   [`StepRule::RouteNormalized`] (default: momentum, one second moment per channel shared by
+//!   the route, so a Gaussian moves in proportion to its gradient) or per-parameter Adam
+//!   ([`StepRule::Adam`]). The channel mask m_g(i) scales the *step* of its channel (under Adam a
+//!   constant mask on the gradient would cancel), which is what scaling the gradient does under
+//!   the SGD update the paper writes. Carriers move colour only unless
+//!   [`FinetuneConfig::wm_geometry`]; means move only by
+//!   [`crate::embed::mask::MaskConfig::position`] (0 by default).
+//! - **Fidelity bound** [`FinetuneConfig::target_psnr`]: when a step's renders fall below it,
+//!   the carriers' offsets from the planned scene are scaled back (the 2D probe's projection,
+//!   `decoder::probe`), and once more, exactly, on every training view at the end (coupled:
+//!   every Gaussian's offset).
+//! - `coupled` (the default recipe, and the paper's ablation "w/o decoupling"): one joint loss
+//!   λ_vis·L_vis + λ_wm·L_wm, its gradient applied to every Gaussian without masks; by default
+//!   on the base colours only ([`LearningRates::colour_only`]). The paper's decoupled recipe is
+//!   [`FinetuneConfig::paper`].
+//!
+//! Per Gaussian, the finetuning also accumulates the norm of its (ungated) ∂L_wm over all
+//! steps; normalised to sum 1 this is its share of the watermark gradient in the attribution
+//! records — a direct check that the watermark loss "lives" on the carriers SBAG chose.
+
+use std::ops::ControlFlow;
+use std::time::Instant;
+
+use burn::tensor::{Device, Tensor, TensorData};
+use serde::{Deserialize, Serialize};
+
+use super::mask::Masks;
+use crate::attack::diff::{DiffAttack, DiffAttackError, EotRng, random_composition};
+use crate::decoder::WatermarkModel;
+use crate::decoder::eval::decode_images;
+use crate::decoder::train::bce_with_logits;
+use crate::render::{self, RenderError, RenderOptions};
+use crate::scene::{Camera, Gaussians};
+
+mod config;
+mod losses;
+mod optim;
+#[cfg(test)]
+mod tests;
+
+pub use config::{FinetuneConfig, LearningRates, LossWeights, StepRule};
+pub use losses::ssim;
+use losses::{as_saved, band_l1, from_planar, to_tensor};
+pub use optim::ROUTE_CLIP;
+use optim::{Adam, RouteMomentum};
+
+/// Why finetuning failed.
+#[derive(Debug, thiserror::Error)]
+pub enum FinetuneError {
+    #[error(transparent)]
+    Render(#[from] RenderError),
+    #[error(transparent)]
+    Attack(#[from] DiffAttackError),
+    #[error("the message has {got} bits, the decoder reads {expected}")]
+    MessageLength { got: usize, expected: usize },
+    #[error("no training views")]
+    NoViews,
+    #[error("target {index} has {got} pixels, its camera {expected}")]
+    TargetSize {
+        index: usize,
+        got: usize,
+        expected: usize,
+    },
+    #[error("the masks are for {masks} Gaussians, the scene has {scene}")]
+    MaskSize { masks: usize, scene: usize },
+    #[error("the loss became {0} at step {1}")]
+    Diverged(f32, usize),
+    #[error("cancelled after step {step}")]
+    Cancelled { step: usize },
+}
+
+/// A training view: camera and the original scene's render through it.
+#[derive(Clone, Debug)]
+pub struct View {
+    pub camera: Camera,
+    /// Linear RGB, row-major, clamped to [0, 1].
+    pub target: Vec<[f32; 3]>,
+}
+
+/// Renders the targets (the original scene through each camera, clamped to [0, 1]).
+pub fn target_views(
+    original: &Gaussians,
+    cameras: &[Camera],
+    opts: &RenderOptions,
+) -> Result<Vec<View>, RenderError> {
+    cameras
+        .iter()
+        .map(|c| {
+            let r = render::render(original, c, opts)?;
+            Ok(View {
+                camera: c.clone(),
+                target: r
+                    .image
+                    .iter()
+                    .map(|p| p.map(|v| v.clamp(0.0, 1.0)))
+                    .collect(),
+            })
+        })
+        .collect()
+}
+
+/// Numbers of one step.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StepLog {
+    /// 1-based.
+    pub step: usize,
+    pub l_wm: f32,
+    pub l_vis: f32,
+    pub bce_clean: f32,
+    pub bce_eot: f32,
+    /// Bit accuracy of the step's averaged clean logits.
+    pub bit_acc_clean: f32,
+    /// Bit accuracy of the step's averaged logits under its EOT draw.
+    pub bit_acc_eot: f32,
+    /// PSNR of the step's renders against their targets (dB, clamped to [0, 1]).
+    pub psnr: f32,
+    /// Factor the carriers' offsets were scaled by after this step to hold `target_psnr`
+    /// (1 = within the bound).
+    #[serde(default = "one")]
+    pub wm_projection: f32,
+    pub seconds: f32,
+}
+
+fn one() -> f32 {
+    1.0
+}
+
+/// What finetuning produced.
+#[derive(Clone, Debug)]
+pub struct Finetuned {
+    pub gaussians: Gaussians,
+    /// Per Gaussian, its share of Σ_steps ‖∂L_wm/∂θ_i‖ (sums to 1 unless the gradient was 0).
+    pub wm_grad_share: Vec<f32>,
+    pub log: Vec<StepLog>,
+    /// The last check of the training views (`extra_steps` > 0 only).
+    pub check: Option<ViewsCheck>,
+    pub seconds: f64,
+}
+
+/// How the training views decode, as a dispute decodes them: each rendered at 8 bits, logits
+/// averaged over all of them.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ViewsCheck {
+    /// After this many steps.
+    pub step: usize,
+    /// Bits equal to the message's.
+    pub matches: usize,
+    pub bits: usize,
+    /// Smallest |averaged logit| over the bits.
+    pub min_abs_logit: f32,
+}
+
+/// The logits of the training views of `g` as a dispute decodes them: each rendered to an
+/// 8-bit image, decoded and the logits averaged ([`decode_images`], what `/v1/verify` runs).
+pub(crate) fn views_logits(
+    g: &Gaussians,
+    views: &[View],
+    model: &WatermarkModel,
+    opts: &RenderOptions,
+) -> Result<Vec<f32>, FinetuneError> {
+    let images = views
+        .iter()
+        .map(|v| {
+            let r = render::render(g, &v.camera, opts)?;
+            Ok(render::to_rgb8(r.width, r.height, &r.image))
+        })
+        .collect::<Result<Vec<_>, RenderError>>()?;
+    Ok(decode_images(model, &images, &Device::flex().autodiff()).logits)
+}
+
+impl ViewsCheck {
+    fn new(step: usize, logits: &[f32], message: &[bool]) -> Self {
+        Self {
+            step,
+            matches: logits
+                .iter()
+                .zip(message)
+                .filter(|&(&z, &m)| (z > 0.0) == m)
+                .count(),
+            bits: message.len(),
+            min_abs_logit: logits.iter().map(|z| z.abs()).fold(f32::INFINITY, f32::min),
+        }
+    }
+}
+
+/// PSNR (dB) of `g`'s renders of every view against the targets (pixels clamped to [0, 1],
+/// one MSE over all views).
+fn views_psnr(g: &Gaussians, views: &[View], opts: &RenderOptions) -> Result<f32, RenderError> {
+    let (mut sq, mut n) = (0.0f64, 0usize);
+    for v in views {
+        let r = render::render(g, &v.camera, opts)?;
+        for (p, q) in r.image.iter().zip(&v.target) {
+            for c in 0..3 {
+                sq += f64::from(p[c].clamp(0.0, 1.0) - q[c]).powi(2);
+            }
+        }
+        n += 3 * r.image.len();
+    }
+    let mse = sq / n.max(1) as f64;
+    Ok(if mse > 0.0 {
+        (-10.0 * mse.log10()) as f32
+    } else {
+        f32::INFINITY
+    })
+}
+
+/// Scales the offsets of the Gaussians in `on` from `base` by `f` (quaternions renormalised).
+fn shrink_offsets(g: &mut Gaussians, base: &Gaussians, on: &[bool], f: f32) {
+    let rl = g.rest_len();
+    let lerp = |x: &mut f32, x0: f32| *x = x0 + f * (*x - x0);
+    for i in (0..g.len()).filter(|&i| on[i]) {
+        for k in 0..3 {
+            lerp(&mut g.means[i][k], base.means[i][k]);
+            lerp(&mut g.sh_dc[i][k], base.sh_dc[i][k]);
+            lerp(&mut g.log_scales[i][k], base.log_scales[i][k]);
+        }
+        for k in i * rl..(i + 1) * rl {
+            lerp(&mut g.sh_rest[k], base.sh_rest[k]);
+        }
+        lerp(&mut g.opacity_logits[i], base.opacity_logits[i]);
+        if g.rotations[i] == base.rotations[i] {
+            continue; // unchanged quaternions stay bit-identical
+        }
+        for k in 0..4 {
+            lerp(&mut g.rotations[i][k], base.rotations[i][k]);
+        }
+        let q = g.rotations[i];
+        let n = q.iter().map(|v| v * v).sum::<f32>().sqrt();
+        if n > 1e-12 && n.is_finite() {
+            g.rotations[i] = q.map(|v| v / n);
+        }
+    }
+}
+
+/// Adds `b` to `a`, parameter by parameter.
+fn add_into(a: &mut Gaussians, b: &Gaussians) {
+    let zip3 = |x: &mut [[f32; 3]], y: &[[f32; 3]]| {
+        for (p, q) in x.iter_mut().zip(y) {
+            for k in 0..3 {
+                p[k] += q[k];
+            }
+        }
+    };
+    zip3(&mut a.means, &b.means);
+    zip3(&mut a.log_scales, &b.log_scales);
+    zip3(&mut a.sh_dc, &b.sh_dc);
+    for (p, q) in a.rotations.iter_mut().zip(&b.rotations) {
+        for k in 0..4 {
+            p[k] += q[k];
+        }
+    }
+    for (p, q) in a.opacity_logits.iter_mut().zip(&b.opacity_logits) {
+        *p += q;
+    }
+    for (p, q) in a.sh_rest.iter_mut().zip(&b.sh_rest) {
+        *p += q;
+    }
+}
+
+/// ‖∂L/∂θ_i‖₂ over every parameter of Gaussian i.
+fn grad_norms(g: &Gaussians) -> Vec<f32> {
+    let rl = g.rest_len();
+    (0..g.len())
+        .map(|i| {
+            let mut s = 0.0f64;
+            let mut add = |v: f32| s += f64::from(v) * f64::from(v);
+            g.means[i].iter().for_each(|&v| add(v));
+            g.log_scales[i].iter().for_each(|&v| add(v));
+            g.rotations[i].iter().for_each(|&v| add(v));
+            add(g.opacity_logits[i]);
+            g.sh_dc[i].iter().for_each(|&v| add(v));
+            g.sh_rest[i * rl..(i + 1) * rl].iter().for_each(|&v| add(v));
+            s.sqrt() as f32
+        })
+        .collect()
+}
+
+/// Finetunes `scene` (the split scene of the plan) so that its renders decode to `message`
+/// under `model`'s frozen decoder, routing the two objectives by `masks`. `model` must live on
+/// an autodiff device. `progress` sees every step.
+pub fn finetune(
+    scene: &Gaussians,
+    masks: &Masks,
+    views: &[View],
+    model: &WatermarkModel,
+    message: &[bool],
+    cfg: &FinetuneConfig,
+    mut progress: impl FnMut(&StepLog) -> ControlFlow<()>,
+) -> Result<Finetuned, FinetuneError> {
+    let start = Instant::now();
+    if message.len() != model.bits() {
+        return Err(FinetuneError::MessageLength {
+            got: message.len(),
+            expected: model.bits(),
+        });
+    }
+    if views.is_empty() {
+        return Err(FinetuneError::NoViews);
+    }
+    for (index, v) in views.iter().enumerate() {
+        let expected = (v.camera.width * v.camera.height) as usize;
+        if v.target.len() != expected {
+            return Err(FinetuneError::TargetSize {
+                index,
+                got: v.target.len(),
+                expected,
+            });
+        }
+    }
+    if masks.mask.len() != scene.len() {
+        return Err(FinetuneError::MaskSize {
+            masks: masks.mask.len(),
+            scene: scene.len(),
+        });
+    }
+    let render_opts = &cfg.render_options();
+    let device = Device::flex().autodiff();
+    let l = message.len();
+    let bits = Tensor::<2>::from_data(
+        TensorData::new(
+            message.iter().map(|&b| f32::from(u8::from(b))).collect(),
+            [1, l],
+        ),
+        &device,
+    );
+    let w = &cfg.weights;
+    let mut g = scene.clone();
+    let mut adam = Adam::new(&g);
+    let mut route = RouteMomentum::new(&g);
+    let mut vis_route = RouteMomentum::new(&g);
+    let is_compensator: Vec<bool> = masks.is_carrier.iter().map(|&c| !c).collect();
+    // The Gaussians the fidelity bound scales back: those on the watermark route.
+    let everyone = vec![true; masks.is_carrier.len()];
+    let bounded: &[bool] = if cfg.coupled {
+        &everyone
+    } else {
+        &masks.is_carrier
+    };
+    let mut rng = EotRng::new(cfg.seed);
+    let mut order: Vec<usize> = Vec::new();
+    let mut wm_norm_sum = vec![0.0f64; g.len()];
+    let mut log = Vec::with_capacity(cfg.steps);
+    let per_step = cfg.views_per_step.clamp(1, views.len());
+    let mut check = None;
+
+    for step in 1..=cfg.steps + cfg.extra_steps {
+        let t0 = Instant::now();
+        // Views of this step: walk shuffled epochs.
+        let mut picked = Vec::with_capacity(per_step);
+        while picked.len() < per_step {
+            if order.is_empty() {
+                order = (0..views.len()).collect();
+                for i in (1..order.len()).rev() {
+                    let j = rng.range_int(0, i as u64) as usize;
+                    order.swap(i, j);
+                }
+            }
+            let v = order.pop().expect("refilled");
+            if !picked.contains(&v) {
+                picked.push(v);
+            }
+        }
+        let renders = picked
+            .iter()
+            .map(|&v| render::render(&g, &views[v].camera, render_opts))
+            .collect::<Result<Vec<_>, _>>()?;
+        let dims: Vec<(usize, usize)> = picked
+            .iter()
+            .map(|&v| {
+                let c = &views[v].camera;
+                (c.width as usize, c.height as usize)
+            })
+            .collect();
+        let leaves = |dev: &Device| -> Vec<Tensor<4>> {
+            renders
+                .iter()
+                .zip(&dims)
+                .map(|(r, &(wd, ht))| to_tensor(&r.image, wd, ht, dev).require_grad())
+                .collect()
+        };
+        let targets: Vec<Tensor<4>> = picked
+            .iter()
+            .zip(&dims)
+            .map(|(&v, &(wd, ht))| to_tensor(&views[v].target, wd, ht, &device))
+            .collect();
+        let nv = per_step as f64;
+
+        // L_wm. The attack is drawn every step (the random stream does not depend on the
+        // ramp); before the ramp is complete it is applied with probability k / ramp.
+        let attack = random_composition(&cfg.eot, &mut rng);
+        let ramp = f64::from(cfg.eot_ramp) * cfg.steps as f64;
+        let p_attack = if ramp >= 1.0 {
+            (step as f64 / ramp).min(1.0)
+        } else {
+            1.0
+        };
+        let attack = if p_attack < 1.0 && rng.uniform() >= p_attack {
+            DiffAttack::Chain(Vec::new())
+        } else {
+            attack
+        };
+        let attack = match attack {
+            DiffAttack::Chain(c) if c.is_empty() => None,
+            a => Some(a),
+        };
+        let xs = leaves(&device);
+        let mut z_cl: Option<Tensor<2>> = None;
+        let mut z_t: Option<Tensor<2>> = None;
+        let mut low: Option<Tensor<1>> = None;
+        let acc2 = |a: Option<Tensor<2>>, b: Tensor<2>| Some(a.map_or(b.clone(), |a| a.add(b)));
+        for (x, t) in xs.iter().zip(&targets) {
+            let saved = as_saved(x.clone());
+            z_cl = acc2(z_cl, model.forward(saved.clone()));
+            let attacked = match &attack {
+                Some(a) => a.apply(saved)?,
+                None => saved,
+            };
+            z_t = acc2(z_t, model.forward(attacked));
+            let b = band_l1(x.clone(), t.clone(), cfg.dwt_levels, true);
+            low = Some(low.map_or(b.clone(), |a| a.add(b)));
+        }
+        let z_cl = z_cl.expect("views").div_scalar(nv);
+        let z_t = z_t.expect("views").div_scalar(nv);
+        let bce_cl = bce_with_logits(z_cl.clone(), bits.clone());
+        let bce_t = bce_with_logits(z_t.clone(), bits.clone());
+        let l_wm = bce_cl
+            .clone()
+            .mul_scalar(w.wm_clean)
+            .add(bce_t.clone().mul_scalar(w.wm_eot))
+            .add(low.expect("views").div_scalar(nv).mul_scalar(w.wav_low));
+
+        // L_vis, on its own leaves so that the two gradients stay apart.
+        let ys = leaves(&device);
+        let mut l_vis: Option<Tensor<1>> = None;
+        let mut sq_err = 0.0f64;
+        let mut n_px = 0usize;
+        for ((y, t), r) in ys.iter().zip(&targets).zip(&renders) {
+            // Saved renders are clamped; compare what a viewer sees.
+            let y = y.clone().clamp(0.0, 1.0);
+            let term = y
+                .clone()
+                .sub(t.clone())
+                .abs()
+                .mean()
+                .mul_scalar(w.rec)
+                .add(
+                    ssim(y.clone(), t.clone())
+                        .neg()
+                        .add_scalar(1.0)
+                        .mul_scalar(w.dssim),
+                )
+                .add(band_l1(y.clone(), t.clone(), cfg.dwt_levels, false).mul_scalar(w.wav_high));
+            l_vis = Some(l_vis.map_or(term.clone(), |a| a.add(term)));
+            let _ = r;
+        }
+        for (&v, r) in picked.iter().zip(&renders) {
+            for (p, q) in r.image.iter().zip(&views[v].target) {
+                for c in 0..3 {
+                    let d = f64::from(p[c].clamp(0.0, 1.0) - q[c]);
+                    sq_err += d * d;
+                }
+            }
+            n_px += r.image.len() * 3;
+        }
+        let l_vis = l_vis.expect("views").div_scalar(nv);
+
+        let scalar = |t: &Tensor<1>| t.clone().detach().into_scalar::<f32>();
+        let (lw, lv) = (scalar(&l_wm), scalar(&l_vis));
+        if !lw.is_finite() || !lv.is_finite() {
+            return Err(FinetuneError::Diverged(
+                if lw.is_finite() { lv } else { lw },
+                step,
+            ));
+        }
+        let acc = |z: &Tensor<2>| {
+            let z: Vec<f32> = z
+                .clone()
+                .detach()
+                .try_into_vec_as::<f32>()
+                .unwrap_or_default();
+            z.iter()
+                .zip(message)
+                .filter(|&(&z, &m)| (z > 0.0) == m)
+                .count() as f32
+                / l as f32
+        };
+        let (acc_cl, acc_t) = (acc(&z_cl), acc(&z_t));
+        let (b_cl, b_t) = (scalar(&bce_cl), scalar(&bce_t));
+
+        let (wm_scale, vis_scale) = if cfg.coupled {
+            (w.wm, w.vis)
+        } else {
+            (1.0, 1.0)
+        };
+        let gw = l_wm.mul_scalar(wm_scale).backward();
+        let gv = l_vis.mul_scalar(vis_scale).backward();
+        let image_grad = |x: &Tensor<4>, grads: &_, n: usize| -> Vec<[f32; 3]> {
+            let d: Vec<f32> = x
+                .grad(grads)
+                .map(|t| t.try_into_vec_as::<f32>().unwrap_or_default())
+                .unwrap_or_default();
+            if d.len() == 3 * n {
+                from_planar(&d, n)
+            } else {
+                vec![[0.0; 3]; n]
+            }
+        };
+
+        // Two backward passes through each render; sum over the step's views.
+        let mut grad_wm = g.cast(|_| 0.0f32);
+        let mut grad_vis = grad_wm.clone();
+        for (k, r) in renders.iter().enumerate() {
+            let n = r.image.len();
+            let d_wm = image_grad(&xs[k], &gw, n);
+            let d_vis = image_grad(&ys[k], &gv, n);
+            add_into(&mut grad_wm, &render::backward(&g, r, &d_wm)?.params);
+            add_into(&mut grad_vis, &render::backward(&g, r, &d_vis)?.params);
+        }
+        for (s, n) in wm_norm_sum.iter_mut().zip(grad_norms(&grad_wm)) {
+            *s += f64::from(n);
+        }
+
+        // Gate and step.
+        let lr = &cfg.lr;
+        let base = [lr.means, lr.dc, lr.rest, lr.opacity, lr.rotation, lr.scale];
+        if cfg.coupled {
+            // Coupled: every Gaussian is on the watermark route, so every rate is scaled.
+            add_into(&mut grad_wm, &grad_vis);
+            let scaled = base.map(|b| b * cfg.wm_lr_scale);
+            adam.step(&mut g, &grad_wm, |_| scaled);
+        } else {
+            let mut routed = grad_vis;
+            for i in 0..g.len() {
+                if masks.is_carrier[i] {
+                    copy_one(&mut routed, &grad_wm, i);
+                }
+            }
+            let rates = |i: usize, s: f32| {
+                let m = masks.mask[i];
+                [
+                    base[0] * masks.position * s,
+                    base[1] * m[0] * s,
+                    base[2] * m[1] * s,
+                    base[3] * m[2] * s,
+                    base[4] * m[3] * s,
+                    base[5] * m[4] * s,
+                ]
+            };
+            let t = (step.min(cfg.steps) as f32 / cfg.steps.max(1) as f32).min(1.0);
+            let decay = cfg.wm_lr_min_fraction
+                + (1.0 - cfg.wm_lr_min_fraction) * 0.5 * (1.0 + (std::f32::consts::PI * t).cos());
+            let wm_s = cfg.wm_lr_scale * decay;
+            let wm_rates = |i: usize| {
+                let mut r = rates(i, wm_s);
+                if !cfg.wm_geometry {
+                    r[0] = 0.0;
+                    r[3] = 0.0;
+                    r[4] = 0.0;
+                    r[5] = 0.0;
+                }
+                r
+            };
+            match cfg.step_rule {
+                StepRule::Adam => adam.step(&mut g, &routed, |i| {
+                    if masks.is_carrier[i] {
+                        wm_rates(i)
+                    } else {
+                        rates(i, 1.0)
+                    }
+                }),
+                StepRule::RouteNormalized => {
+                    route.step(&mut g, &routed, &masks.is_carrier, wm_rates);
+                    vis_route.step(&mut g, &routed, &is_compensator, |i| rates(i, 1.0));
+                }
+            }
+        }
+
+        let mse = sq_err / n_px.max(1) as f64;
+        let psnr = if mse > 0.0 {
+            (-10.0 * mse.log10()) as f32
+        } else {
+            f32::INFINITY
+        };
+        let projection = if cfg.target_psnr > 0.0 && psnr < cfg.target_psnr {
+            let f = 10f32.powf((psnr - cfg.target_psnr) / 20.0);
+            shrink_offsets(&mut g, scene, bounded, f);
+            f
+        } else {
+            1.0
+        };
+        let entry = StepLog {
+            step,
+            l_wm: lw,
+            l_vis: lv,
+            bce_clean: b_cl,
+            bce_eot: b_t,
+            bit_acc_clean: acc_cl,
+            bit_acc_eot: acc_t,
+            psnr,
+            wm_projection: projection,
+            seconds: t0.elapsed().as_secs_f32(),
+        };
+        let flow = progress(&entry);
+        log.push(entry);
+        if flow.is_break() {
+            return Err(FinetuneError::Cancelled { step });
+        }
+        if cfg.extra_steps > 0
+            && step >= cfg.steps
+            && ((step - cfg.steps).is_multiple_of(cfg.check_every.max(1))
+                || step == cfg.steps + cfg.extra_steps)
+        {
+            let c = ViewsCheck::new(step, &views_logits(&g, views, model, render_opts)?, message);
+            check = Some(c);
+            if c.matches == c.bits {
+                break;
+            }
+        }
+    }
+
+    // The per-step bound acts on the renders before each update; hold it exactly at the end:
+    // the mean PSNR of every training view, re-rendered, scaled back onto the bound.
+    if cfg.target_psnr > 0.0 {
+        for _ in 0..4 {
+            let psnr = views_psnr(&g, views, render_opts)?;
+            if psnr >= cfg.target_psnr {
+                break;
+            }
+            let f = 10f32.powf((psnr - cfg.target_psnr) / 20.0);
+            shrink_offsets(&mut g, scene, bounded, f);
+        }
+    }
+
+    let total: f64 = wm_norm_sum.iter().sum();
+    let wm_grad_share = wm_norm_sum
+        .iter()
+        .map(|&s| if total > 0.0 { (s / total) as f32 } else { 0.0 })
+        .collect();
+    Ok(Finetuned {
+        gaussians: g,
+        wm_grad_share,
+        log,
+        check,
+        seconds: start.elapsed().as_secs_f64(),
+    })
+}
+
+/// Copies every parameter of Gaussian `i` from `src` into `dst`.
+fn copy_one(dst: &mut Gaussians, src: &Gaussians, i: usize) {
+    let rl = dst.rest_len();
+    dst.means[i] = src.means[i];
+    dst.log_scales[i] = src.log_scales[i];
+    dst.rotations[i] = src.rotations[i];
+    dst.opacity_logits[i] = src.opacity_logits[i];
+    dst.sh_dc[i] = src.sh_dc[i];
+    dst.sh_rest[i * rl..(i + 1) * rl].copy_from_slice(&src.sh_rest[i * rl..(i + 1) * rl]);
+}
