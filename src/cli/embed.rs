@@ -125,6 +125,10 @@ pub(crate) struct EmbedArgs {
     /// Seed of the finetuning's random draws (views, attacks) and of --no-sbag (default 0).
     #[arg(long)]
     seed: Option<u64>,
+    /// Render the training views at these factors of their resolution too, comma separated
+    /// (e.g. 1,2): the message then holds at the resolutions a dispute may render at.
+    #[arg(long, value_delimiter = ',')]
+    view_scales: Option<Vec<f32>>,
     #[command(flatten)]
     model: ModelArgs,
     #[command(flatten)]
@@ -198,6 +202,9 @@ pub(crate) fn embed_cmd(a: &EmbedArgs) -> Result<()> {
     }
     if let Some(s) = a.seed {
         opts.finetune.seed = s;
+    }
+    if let Some(v) = &a.view_scales {
+        opts.view_scales = v.clone();
     }
     let seed = opts.finetune.seed;
     if a.no_prune {

@@ -35,6 +35,11 @@ pub struct EmbedOptions {
     /// ([`EmbedReport::reference_logits`]) for verification (the service registers them with
     /// the key).
     pub reference: bool,
+    /// Resolutions the training views are rendered at, as factors of each camera's own
+    /// (`[1.0, 2.0]`: every training camera at its size and at twice it). A dispute renders at
+    /// whatever resolution it likes, and the message written at one resolution is weaker at
+    /// another (docs/RESULTS.md); each factor in [0.125, 8], every view at least 16 px a side.
+    pub view_scales: Vec<f32>,
 }
 
 impl Default for EmbedOptions {
@@ -44,8 +49,45 @@ impl Default for EmbedOptions {
             finetune: FinetuneConfig::default(),
             no_group_mask: false,
             reference: true,
+            view_scales: vec![1.0],
         }
     }
+}
+
+/// The training cameras at every factor of `scales` (in that order, each camera's resolution
+/// multiplied, intrinsics scaled with it).
+pub fn scaled_views(cameras: &[Camera], scales: &[f32]) -> Result<Vec<Camera>, EmbedError> {
+    if scales.is_empty() {
+        return Err(EmbedError::Invalid(
+            "view_scales needs at least one factor".into(),
+        ));
+    }
+    let mut out = Vec::with_capacity(cameras.len() * scales.len());
+    for &s in scales {
+        if !(0.125..=8.0).contains(&s) {
+            return Err(EmbedError::Invalid(format!(
+                "view_scales: {s} is outside [0.125, 8]"
+            )));
+        }
+        for c in cameras {
+            let w = (c.width as f32 * s).round() as u32;
+            let h = (c.height as f32 * s).round() as u32;
+            if w > 8192 || h > 8192 {
+                return Err(EmbedError::Invalid(format!(
+                    "view_scales: {s} makes a {}×{} view {w}×{h} (at most 8192 px a side)",
+                    c.width, c.height
+                )));
+            }
+            if w < 16 || h < 16 {
+                return Err(EmbedError::Invalid(format!(
+                    "view_scales: {s} makes a {}×{} view {w}×{h} (at least 16 px a side)",
+                    c.width, c.height
+                )));
+            }
+            out.push(if s == 1.0 { c.clone() } else { c.resized(w, h) });
+        }
+    }
+    Ok(out)
 }
 
 impl EmbedOptions {
@@ -97,6 +139,8 @@ pub enum EmbedError {
     EmptyScene,
     #[error("cancelled")]
     Cancelled,
+    #[error("invalid embedding options: {0}")]
+    Invalid(String),
 }
 
 /// Seconds spent per phase.
@@ -179,7 +223,7 @@ pub fn embed(
     report_phase(&mut progress, Phase::Targets)?;
     let ro = opts.render_options();
     let t = Instant::now();
-    let views: Vec<View> = target_views(g, cameras, &ro)?;
+    let views: Vec<View> = target_views(g, &scaled_views(cameras, &opts.view_scales)?, &ro)?;
     let t_targets = t.elapsed().as_secs_f64();
 
     report_phase(&mut progress, Phase::Plan)?;
@@ -313,4 +357,40 @@ pub fn split_views(cameras: &[Camera], every: usize) -> (Vec<Camera>, Vec<Camera
         }
     }
     (train, held)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::orbit::{OrbitOptions, orbit_cameras};
+    use crate::scene::synthetic::object_scene;
+
+    #[test]
+    fn view_scales_multiply_each_camera_and_bad_factors_are_named() {
+        let g = object_scene(50, 0, 1);
+        let cams = orbit_cameras(
+            &g,
+            &OrbitOptions {
+                count: 3,
+                width: 64,
+                height: 48,
+                ..OrbitOptions::default()
+            },
+        )
+        .unwrap();
+        let v = scaled_views(&cams, &[1.0, 2.0]).unwrap();
+        assert_eq!(v.len(), 6);
+        assert_eq!(v[0], cams[0]);
+        assert_eq!((v[3].width, v[3].height), (128, 96));
+        assert!((v[3].fx - 2.0 * cams[0].fx).abs() < 1e-4);
+        assert_eq!(v[3].center(), cams[0].center());
+        for (bad, needle) in [
+            (&[][..], "at least one"),
+            (&[9.0][..], "outside"),
+            (&[0.25][..], "at least 16"),
+        ] {
+            let e = scaled_views(&cams, bad).unwrap_err().to_string();
+            assert!(e.contains(needle), "{bad:?}: {e}");
+        }
+    }
 }

@@ -70,6 +70,18 @@ impl JobOptions {
                 "options.embed.finetune.extra_steps: steps + extra_steps must be at most {MAX_STEPS}"
             ));
         }
+        if let Some(&s) = embed
+            .view_scales
+            .iter()
+            .find(|&&s| !(0.125..=8.0).contains(&s))
+        {
+            return Err(format!(
+                "options.embed.view_scales: {s} is outside [0.125, 8]"
+            ));
+        }
+        if embed.view_scales.is_empty() || embed.view_scales.len() > 4 {
+            return Err("options.embed.view_scales needs 1 to 4 factors".into());
+        }
         if embed.finetune.check_every == 0 {
             return Err("options.embed.finetune.check_every must be at least 1".into());
         }
@@ -168,6 +180,8 @@ mod tests {
                 json!({"embed": {"finetune": {"check_every": 0}}}),
                 "check_every",
             ),
+            (json!({"embed": {"view_scales": [1.0, 9.0]}}), "view_scales"),
+            (json!({"embed": {"view_scales": []}}), "view_scales"),
         ] {
             let o: JobOptions = serde_json::from_value(v).unwrap();
             let e = o.resolve(&cfg).unwrap_err();
