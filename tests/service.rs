@@ -152,6 +152,12 @@ impl TestApp {
         r.json().await.unwrap()
     }
 
+    /// The `/metrics` page.
+    async fn metrics(&self) -> String {
+        let r = self.client.get(self.url("/metrics")).send().await.unwrap();
+        r.text().await.unwrap()
+    }
+
     /// Polls a job until it leaves the queued/running states.
     async fn wait_job(&self, token: &str, id: &str, limit: Duration) -> Value {
         self.wait_job_until(token, id, limit, |j| {
@@ -745,15 +751,7 @@ async fn health_metrics_and_the_served_spec_match_the_committed_one() {
     assert_eq!(r.status(), StatusCode::OK);
     let r = t.client.get(t.url("/readyz")).send().await.unwrap();
     assert_eq!(r.status(), StatusCode::OK);
-    let m = t
-        .client
-        .get(t.url("/metrics"))
-        .send()
-        .await
-        .unwrap()
-        .text()
-        .await
-        .unwrap();
+    let m = t.metrics().await;
     assert!(
         m.contains("splatmark_http_responses_total{class=\"2xx\"}"),
         "{m}"
@@ -1382,15 +1380,7 @@ async fn audit_time_filters_must_be_real_instants() {
 
 /// The count of one status class in `/metrics`.
 async fn responses_of_class(t: &TestApp, class: &str) -> u64 {
-    let m = t
-        .client
-        .get(t.url("/metrics"))
-        .send()
-        .await
-        .unwrap()
-        .text()
-        .await
-        .unwrap();
+    let m = t.metrics().await;
     let key = format!("splatmark_http_responses_total{{class=\"{class}\"}} ");
     m.lines()
         .find_map(|l| l.strip_prefix(&key))

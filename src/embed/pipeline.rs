@@ -54,21 +54,24 @@ impl Default for EmbedOptions {
     }
 }
 
+/// Checks [`EmbedOptions::view_scales`] without cameras: at least one factor, each in
+/// [0.125, 8].
+pub fn check_view_scales(scales: &[f32]) -> Result<(), String> {
+    if scales.is_empty() {
+        return Err("view_scales needs at least one factor".into());
+    }
+    match scales.iter().find(|s| !(0.125..=8.0).contains(*s)) {
+        Some(s) => Err(format!("view_scales: {s} is outside [0.125, 8]")),
+        None => Ok(()),
+    }
+}
+
 /// The training cameras at every factor of `scales` (in that order, each camera's resolution
 /// multiplied, intrinsics scaled with it).
 pub fn scaled_views(cameras: &[Camera], scales: &[f32]) -> Result<Vec<Camera>, EmbedError> {
-    if scales.is_empty() {
-        return Err(EmbedError::Invalid(
-            "view_scales needs at least one factor".into(),
-        ));
-    }
+    check_view_scales(scales).map_err(EmbedError::Invalid)?;
     let mut out = Vec::with_capacity(cameras.len() * scales.len());
     for &s in scales {
-        if !(0.125..=8.0).contains(&s) {
-            return Err(EmbedError::Invalid(format!(
-                "view_scales: {s} is outside [0.125, 8]"
-            )));
-        }
         for c in cameras {
             let w = (c.width as f32 * s).round() as u32;
             let h = (c.height as f32 * s).round() as u32;

@@ -225,11 +225,11 @@ pub async fn verify(
             let r = decoders
                 .with(&cfg, n, |m, d| decode_images(m, &imgs, d))
                 .map_err(ApiError::internal)?;
-            out.insert(n, r.logits.clone());
             logits.insert(
                 n,
                 json!({"confidence": r.confidence, "per_image": r.per_image}),
             );
+            out.insert(n, r.logits);
         }
         Ok::<_, ApiError>((out, logits))
     })

@@ -70,17 +70,10 @@ impl JobOptions {
                 "options.embed.finetune.extra_steps: steps + extra_steps must be at most {MAX_STEPS}"
             ));
         }
-        if let Some(&s) = embed
-            .view_scales
-            .iter()
-            .find(|&&s| !(0.125..=8.0).contains(&s))
-        {
-            return Err(format!(
-                "options.embed.view_scales: {s} is outside [0.125, 8]"
-            ));
-        }
-        if embed.view_scales.is_empty() || embed.view_scales.len() > 4 {
-            return Err("options.embed.view_scales needs 1 to 4 factors".into());
+        crate::embed::pipeline::check_view_scales(&embed.view_scales)
+            .map_err(|e| format!("options.embed.{e}"))?;
+        if embed.view_scales.len() > 4 {
+            return Err("options.embed.view_scales: at most 4 factors".into());
         }
         if embed.finetune.check_every == 0 {
             return Err("options.embed.finetune.check_every must be at least 1".into());
