@@ -50,6 +50,7 @@ impl App {
             Some(w) => w,
             None => plan_workers(&cfg).await,
         };
+        let cfg_header_timeout = cfg.header_timeout();
         let cfg = Arc::new(cfg);
         let (shutdown, rx) = watch::channel(false);
         let wake = Arc::new(Notify::new());
@@ -74,14 +75,14 @@ impl App {
         };
         let app = router(state);
         let rx_gc = rx.clone();
-        let mut rx_server = rx;
-        let server = tokio::spawn(async move {
-            axum::serve(listener, app)
-                .with_graceful_shutdown(async move {
-                    let _ = rx_server.wait_for(|&s| s).await;
-                })
-                .await
-        });
+        let rx_server = rx;
+        let header_timeout = cfg_header_timeout;
+        let server = tokio::spawn(crate::http::server::serve(
+            listener,
+            app,
+            header_timeout,
+            rx_server,
+        ));
         tokio::spawn(collect_garbage_periodically(store.clone(), rx_gc));
         tracing::info!(%addr, "splatmark listening");
         Ok(App {

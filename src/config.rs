@@ -79,6 +79,10 @@ pub struct Config {
     /// 408 and dropped, in milliseconds (slow clients cannot hold a connection for the whole
     /// request timeout).
     pub body_idle_timeout_ms: u64,
+    /// A request header that has not arrived whole this long after the connection started
+    /// waiting for it closes the connection, in milliseconds (a client trickling its header
+    /// cannot hold a connection open).
+    pub header_timeout_ms: u64,
     /// Family-wise false-positive rate of verification decisions.
     pub fpr: f64,
     /// Job lease; workers heartbeat every third of it.
@@ -115,6 +119,7 @@ impl Default for Config {
             upload_concurrency: 2,
             upload_wait_ms: 10_000,
             body_idle_timeout_ms: 30_000,
+            header_timeout_ms: 10_000,
             fpr: 1e-6,
             lease_seconds: 60,
             max_attempts: 3,
@@ -151,6 +156,11 @@ impl Config {
     /// [`Config::body_idle_timeout_ms`] as a duration.
     pub fn body_idle_timeout(&self) -> std::time::Duration {
         std::time::Duration::from_millis(self.body_idle_timeout_ms)
+    }
+
+    /// [`Config::header_timeout_ms`] as a duration.
+    pub fn header_timeout(&self) -> std::time::Duration {
+        std::time::Duration::from_millis(self.header_timeout_ms)
     }
 
     /// Defaults overlaid with the TOML file `path` (when given).
@@ -251,6 +261,9 @@ impl Config {
         }
         if self.body_idle_timeout_ms == 0 {
             return bad("body_idle_timeout_ms must be at least 1");
+        }
+        if self.header_timeout_ms == 0 {
+            return bad("header_timeout_ms must be at least 1");
         }
         if self.upload_concurrency == 0 {
             return bad("upload_concurrency must be at least 1");

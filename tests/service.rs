@@ -1443,3 +1443,39 @@ async fn stalled_and_vanishing_uploads_are_client_errors_not_server_errors() {
     assert!(stored_blobs(&t.data()).is_empty());
     t.stop().await;
 }
+
+#[tokio::test]
+async fn a_client_trickling_its_request_header_is_cut_off() {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let mut t = TestApp::start_with(|c| c.header_timeout_ms = 500).await;
+    let addr = t.base.trim_start_matches("http://").to_string();
+    let mut s = tokio::net::TcpStream::connect(&addr).await.unwrap();
+    s.write_all(b"GET /healthz HTTP/1.1\r\nHo").await.unwrap();
+    // One byte every 100 ms, never the end of the header; the server must close the connection
+    // well before this client would give up on its own (10 s).
+    let started = Instant::now();
+    let closed = loop {
+        let mut buf = [0u8; 512];
+        match tokio::time::timeout(Duration::from_millis(100), s.read(&mut buf)).await {
+            Ok(Ok(0)) | Ok(Err(_)) => break true,
+            Ok(Ok(n)) => {
+                let reply = String::from_utf8_lossy(&buf[..n]).to_string();
+                assert!(reply.starts_with("HTTP/1.1 408"), "{reply}");
+                break true;
+            }
+            Err(_) => {}
+        }
+        if started.elapsed() > Duration::from_secs(10) {
+            break false;
+        }
+        if s.write_all(b"s").await.is_err() {
+            break true;
+        }
+    };
+    assert!(closed, "a trickled header held the connection for 10 s");
+    assert!(started.elapsed() < Duration::from_secs(5));
+    // Everyone else is served as usual.
+    let health = t.client.get(t.url("/healthz")).send().await.unwrap();
+    assert_eq!(health.status(), 200);
+    t.stop().await;
+}

@@ -9,6 +9,7 @@ pub mod health;
 pub mod jobs;
 pub mod keys;
 pub mod openapi;
+pub mod server;
 pub mod verify;
 
 use std::collections::HashMap;
