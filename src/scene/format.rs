@@ -255,6 +255,10 @@ pub(crate) struct RawGaussian<'a> {
     pub rest: &'a [f32],
 }
 
+/// Largest log-scale a scene may hold: e^40 ≈ 2·10¹⁷ scene units, whose square (the
+/// covariance) still fits in an f32; real scenes hold about −15 to 5.
+pub const MAX_LOG_SCALE: f32 = 40.0;
+
 impl GaussianBuilder {
     /// Room for `n` Gaussians of SH degree `sh_degree` (the caller has checked `n` against the
     /// limits and the file size).
@@ -276,6 +280,12 @@ impl GaussianBuilder {
         };
         finite(&r.mean, "position")?;
         finite(&r.log_scale, "scale")?;
+        if let Some(&v) = r.log_scale.iter().find(|&&v| v > MAX_LOG_SCALE) {
+            return Err(SceneError::Corrupt(format!(
+                "Gaussian {index}: log-scale {v} is above {MAX_LOG_SCALE} (its covariance would \
+                 overflow)"
+            )));
+        }
         finite(&r.rotation, "rotation")?;
         finite(std::slice::from_ref(&r.opacity), "opacity")?;
         finite(&r.dc, "f_dc")?;

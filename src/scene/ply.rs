@@ -180,8 +180,16 @@ pub fn parse_header(bytes: &[u8]) -> Result<Header, SceneError> {
                         return Err(header_err(line_no, format!("unknown format {other:?}")));
                     }
                 };
-                if toks.next().is_none() {
-                    return Err(header_err(line_no, "'format' line lacks a version"));
+                match toks.next() {
+                    None => return Err(header_err(line_no, "'format' line lacks a version")),
+                    Some("1.0") => {}
+                    Some(v) => {
+                        let v: String = v.chars().take(16).collect();
+                        return Err(header_err(
+                            line_no,
+                            format!("PLY version {v:?} is not supported (1.0 is)"),
+                        ));
+                    }
                 }
                 encoding = Some(enc);
             }
@@ -278,6 +286,15 @@ fn binary_spans(bytes: &[u8], header: &Header) -> Result<Vec<std::ops::Range<usi
             expected: total,
             actual: available,
         });
+    }
+    // Anything after the declared data but a final newline or two is not this file's: a
+    // second file appended (a polyglot) or a header that lies about the counts.
+    let tail = &bytes[header.data_offset + total as usize..];
+    if tail.len() > 2 || !tail.iter().all(|b| b.is_ascii_whitespace()) {
+        return Err(SceneError::Corrupt(format!(
+            "{} bytes follow the data the header declares",
+            tail.len()
+        )));
     }
     // Every span now fits in the file, hence in usize.
     Ok(spans
@@ -459,6 +476,11 @@ pub(crate) fn for_each_row(
                     })?;
                 }
                 f(i as usize, &values)?;
+            }
+            if elem + 1 == header.elements.len() && toks.next_token().is_some() {
+                return Err(SceneError::Corrupt(
+                    "values follow the data the header declares".into(),
+                ));
             }
             Ok(())
         }
@@ -949,6 +971,38 @@ pub(crate) mod tests {
         };
         let e = read_scene_bytes(text.as_bytes(), None, &limits).unwrap_err();
         assert!(matches!(e, SceneError::Truncated { .. }), "{e}");
+    }
+
+    #[test]
+    fn err_bytes_after_the_declared_data() {
+        // A final newline is tolerated; a second file appended is not.
+        let mut b = custom_ply(&MINIMAL, &[minimal_row()]);
+        b.push(b'\n');
+        assert!(read(&b).is_ok());
+        b.extend_from_slice(b"PK\x03\x04 a zip archive riding along");
+        let e = read(&b).unwrap_err();
+        assert!(matches!(e, SceneError::Corrupt(_)), "{e}");
+        assert!(e.to_string().contains("follow the data"), "{e}");
+        let g = synthetic(2, 0, 3);
+        let mut a = write_ascii(&g);
+        assert!(read(&a).is_ok());
+        a.extend_from_slice(b"\n1 2 3\n");
+        let e = read(&a).unwrap_err();
+        assert!(matches!(e, SceneError::Corrupt(_)), "{e}");
+    }
+
+    #[test]
+    fn err_unsupported_version_and_overflowing_scales() {
+        let b = custom_ply(&MINIMAL, &[minimal_row()]);
+        let text = String::from_utf8_lossy(&b).replacen(" 1.0\n", " 2.0\n", 1);
+        let e = read(text.as_bytes()).unwrap_err();
+        assert!(matches!(e, SceneError::Header(_)), "{e}");
+        assert!(e.to_string().contains("version"), "{e}");
+        // log-scale 100: finite, but e^100 overflows every covariance.
+        let mut g = synthetic(2, 0, 3);
+        g.log_scales[1] = [-3.0, 100.0, -3.0];
+        let e = read(&write_ascii(&g)).unwrap_err();
+        assert!(e.to_string().contains("log-scale"), "{e}");
     }
 
     #[test]
