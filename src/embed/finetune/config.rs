@@ -106,8 +106,15 @@ pub struct FinetuneConfig {
     pub extra_steps: usize,
     /// Steps between two such checks.
     pub check_every: usize,
-    /// Views rendered per step; their logits are averaged (eq. `avglogits`).
+    /// Views rendered per step; their logits are averaged (eq. `avglogits`) unless
+    /// `per_view_loss`.
     pub views_per_step: usize,
+    /// The watermark BCE of each view's own logits, averaged over the step's views, instead of
+    /// the BCE of their averaged logits (eq. `avglogits`). A dispute may hold one view: with the
+    /// averaged logits a step is satisfied when the views agree on average, and measured on
+    /// donut (256², 300 steps) the training views then decoded 87 % of the bits one by one
+    /// while their average decoded 97 %.
+    pub per_view_loss: bool,
     pub lr: LearningRates,
     /// Multiplier of every learning rate on the watermark route: the carriers' rates when
     /// decoupled, every Gaussian's when `coupled` (all of them carry the watermark then).
@@ -164,6 +171,7 @@ impl FinetuneConfig {
     pub fn paper() -> Self {
         Self {
             views_per_step: 2,
+            per_view_loss: false,
             lr: LearningRates::inria(),
             coupled: false,
             ..Self::default()
@@ -182,6 +190,7 @@ impl Default for FinetuneConfig {
             extra_steps: 0,
             check_every: 25,
             views_per_step: 4,
+            per_view_loss: true,
             lr: LearningRates::default(),
             wm_lr_scale: 4.0,
             weights: LossWeights::default(),

@@ -4,6 +4,34 @@ use burn::tensor::{Device, Tensor, TensorData};
 
 use crate::attack::diff::{gaussian_blur, straight_through_round};
 use crate::decoder::dwt::dwt;
+use crate::decoder::train::bce_with_logits;
+
+/// The watermark BCE of a step's views `[1, L]` logits each: of their average (eq.
+/// `avglogits`), or, `per_view`, the average of each view's own BCE — which a view that decodes
+/// wrong cannot hide behind views that decode right.
+///
+/// # Panics
+/// If `views` is empty.
+pub(super) fn views_bce(views: &[Tensor<2>], bits: &Tensor<2>, per_view: bool) -> Tensor<1> {
+    let n = views.len() as f64;
+    assert!(!views.is_empty(), "a step has views");
+    if per_view {
+        views
+            .iter()
+            .map(|z| bce_with_logits(z.clone(), bits.clone()))
+            .reduce(|a, b| a.add(b))
+            .expect("views")
+            .div_scalar(n)
+    } else {
+        let mean = views
+            .iter()
+            .cloned()
+            .reduce(|a, b| a.add(b))
+            .expect("views")
+            .div_scalar(n);
+        bce_with_logits(mean, bits.clone())
+    }
+}
 
 /// Row-major RGB → planar `[1, 3, H, W]` tensor.
 pub(super) fn to_tensor(pixels: &[[f32; 3]], w: usize, h: usize, device: &Device) -> Tensor<4> {
@@ -70,4 +98,38 @@ pub(super) fn band_l1(x: Tensor<4>, y: Tensor<4>, levels: usize, low: bool) -> T
 /// (straight-through), as a saved PNG would be.
 pub(super) fn as_saved(x: Tensor<4>) -> Tensor<4> {
     straight_through_round(x.clamp(0.0, 1.0).mul_scalar(255.0)).div_scalar(255.0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn t(v: &[f32], device: &Device) -> Tensor<2> {
+        Tensor::from_data(TensorData::new(v.to_vec(), [1, v.len()]), device)
+    }
+
+    #[test]
+    fn a_view_that_decodes_wrong_costs_the_per_view_loss_not_the_averaged_one() {
+        let device = Device::flex();
+        let bits = t(&[1.0], &device);
+        // Two views of bit 1: one confidently right (+3), one wrong (−1). Their average (+1)
+        // decodes right, so the averaged BCE is small; the per-view BCE keeps the wrong view.
+        let views = [t(&[3.0], &device), t(&[-1.0], &device)];
+        let avg = views_bce(&views, &bits, false).into_scalar::<f32>();
+        let per = views_bce(&views, &bits, true).into_scalar::<f32>();
+        let softplus = |x: f32| (1.0 + x.exp()).ln();
+        assert!((avg - softplus(-1.0)).abs() < 1e-5, "{avg}");
+        assert!(
+            (per - 0.5 * (softplus(-3.0) + softplus(1.0))).abs() < 1e-5,
+            "{per}"
+        );
+        assert!(per > 2.0 * avg);
+        // One view: the same loss either way.
+        let one = [t(&[0.4], &device)];
+        let (a, b) = (
+            views_bce(&one, &bits, false).into_scalar::<f32>(),
+            views_bce(&one, &bits, true).into_scalar::<f32>(),
+        );
+        assert!((a - b).abs() < 1e-6);
+    }
 }

@@ -7,7 +7,8 @@
 //!
 //! - **L_wm** = λ_clean·BCE(z̄_cl, b) + λ_eot·BCE(z̄(t), b) + λ_low·L1(LL, LL★), where
 //!   z̄ = (1/|V|)·Σ_v D(q(I_v)) averages the frozen decoder's logits over the step's views
-//!   (eq. `avglogits`), t ~ p(t) is one draw of the differentiable attack family
+//!   (eq. `avglogits`; with [`FinetuneConfig::per_view_loss`], the default, each BCE is instead
+//!   (1/|V|)·Σ_v BCE(D(q(I_v)), b), so that every view decodes on its own), t ~ p(t) is one draw of the differentiable attack family
 //!   ([`crate::attack::diff::random_composition`]) applied to every view of the step, q is the
 //!   8-bit quantisation a saved render goes through (straight-through), and LL★ are the bands of
 //!   the original scene's render (2-level Haar, [`crate::decoder::dwt`]).
@@ -47,7 +48,6 @@ use super::mask::Masks;
 use crate::attack::diff::{DiffAttack, DiffAttackError, EotRng, random_composition};
 use crate::decoder::WatermarkModel;
 use crate::decoder::eval::decode_images;
-use crate::decoder::train::bce_with_logits;
 use crate::render::{self, RenderError, RenderOptions};
 use crate::scene::{Camera, Gaussians};
 
@@ -59,7 +59,7 @@ mod tests;
 
 pub use config::{FinetuneConfig, LearningRates, LossWeights, StepRule};
 pub use losses::ssim;
-use losses::{as_saved, band_l1, from_planar, to_tensor};
+use losses::{as_saved, band_l1, from_planar, to_tensor, views_bce};
 pub use optim::ROUTE_CLIP;
 use optim::{Adam, RouteMomentum};
 
@@ -423,25 +423,29 @@ pub fn finetune(
             a => Some(a),
         };
         let xs = leaves(&device);
-        let mut z_cl: Option<Tensor<2>> = None;
-        let mut z_t: Option<Tensor<2>> = None;
+        let mut z_cl: Vec<Tensor<2>> = Vec::with_capacity(xs.len());
+        let mut z_t: Vec<Tensor<2>> = Vec::with_capacity(xs.len());
         let mut low: Option<Tensor<1>> = None;
-        let acc2 = |a: Option<Tensor<2>>, b: Tensor<2>| Some(a.map_or(b.clone(), |a| a.add(b)));
         for (x, t) in xs.iter().zip(&targets) {
             let saved = as_saved(x.clone());
-            z_cl = acc2(z_cl, model.forward(saved.clone()));
+            z_cl.push(model.forward(saved.clone()));
             let attacked = match &attack {
                 Some(a) => a.apply(saved)?,
                 None => saved,
             };
-            z_t = acc2(z_t, model.forward(attacked));
+            z_t.push(model.forward(attacked));
             let b = band_l1(x.clone(), t.clone(), cfg.dwt_levels, true);
             low = Some(low.map_or(b.clone(), |a| a.add(b)));
         }
-        let z_cl = z_cl.expect("views").div_scalar(nv);
-        let z_t = z_t.expect("views").div_scalar(nv);
-        let bce_cl = bce_with_logits(z_cl.clone(), bits.clone());
-        let bce_t = bce_with_logits(z_t.clone(), bits.clone());
+        let bce_cl = views_bce(&z_cl, &bits, cfg.per_view_loss);
+        let bce_t = views_bce(&z_t, &bits, cfg.per_view_loss);
+        let mean = |zs: Vec<Tensor<2>>| {
+            zs.into_iter()
+                .reduce(|a, b| a.add(b))
+                .expect("views")
+                .div_scalar(nv)
+        };
+        let (z_cl, z_t) = (mean(z_cl), mean(z_t));
         let l_wm = bce_cl
             .clone()
             .mul_scalar(w.wm_clean)
