@@ -1479,3 +1479,44 @@ async fn a_client_trickling_its_request_header_is_cut_off() {
     assert_eq!(health.status(), 200);
     t.stop().await;
 }
+
+#[tokio::test]
+async fn malformed_requests_get_problem_json_like_every_other_error() {
+    let mut t = TestApp::start().await;
+    let k = t.keys().await;
+    // A query string that does not parse, a multipart body without a boundary, a JSON body
+    // that is not the schema, a method the route does not have: each is problem+json with
+    // the reason, not axum's plain text.
+    let r = t
+        .client
+        .get(t.url("/v1/audit?limit=lots"))
+        .bearer_auth(&k.auditor)
+        .send()
+        .await
+        .unwrap();
+    let p = assert_problem(r, StatusCode::BAD_REQUEST).await;
+    assert!(p["detail"].as_str().unwrap().contains("limit"), "{p}");
+    let r = t
+        .client
+        .post(t.url("/v1/assets"))
+        .bearer_auth(&k.owner)
+        .header("content-type", "multipart/form-data")
+        .body("--x\r\n")
+        .send()
+        .await
+        .unwrap();
+    assert!(r.status().is_client_error(), "{}", r.status());
+    let status = r.status();
+    assert_problem(r, status).await;
+    let r = t
+        .client
+        .get(t.url("/v1/verify"))
+        .bearer_auth(&k.verifier)
+        .send()
+        .await
+        .unwrap();
+    let allow = r.headers().get("allow").cloned();
+    assert_problem(r, StatusCode::METHOD_NOT_ALLOWED).await;
+    assert!(allow.is_some(), "405 keeps its Allow header");
+    t.stop().await;
+}

@@ -144,3 +144,36 @@ impl From<SceneError> for ApiError {
 
 /// A route's result.
 pub type ApiResult<T> = Result<T, ApiError>;
+
+/// Middleware: an error response that is not problem+json already — axum's own rejections of a
+/// query string, a JSON body, a multipart boundary, a method; the timeout layer's 408 — is
+/// rewritten as one, its plain-text reason (at most 1 KiB) as the detail, so that every error a
+/// client sees has the same shape. Other headers (`Allow`, `Retry-After`) are kept.
+pub async fn as_problem(req: axum::extract::Request, next: axum::middleware::Next) -> Response {
+    let r = next.run(req).await;
+    let status = r.status();
+    let is_problem = r
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .is_some_and(|v| v.as_bytes().starts_with(b"application/problem+json"));
+    if status.as_u16() < 400 || is_problem {
+        return r;
+    }
+    let (mut parts, body) = r.into_parts();
+    let text = axum::body::to_bytes(body, 64 * 1024)
+        .await
+        .unwrap_or_default();
+    let text = String::from_utf8_lossy(&text[..text.len().min(1024)]);
+    let detail = match text.trim() {
+        "" => status.canonical_reason().unwrap_or("error").to_lowercase(),
+        t => t.to_string(),
+    };
+    let title = status.canonical_reason().unwrap_or("Error");
+    let fresh = ApiError::new(status, title, detail).into_response();
+    let (fresh_parts, body) = fresh.into_parts();
+    parts.headers.remove(header::CONTENT_LENGTH);
+    for (k, v) in &fresh_parts.headers {
+        parts.headers.insert(k.clone(), v.clone());
+    }
+    Response::from_parts(parts, body)
+}

@@ -184,5 +184,6 @@ pub fn router(state: AppState) -> Router {
             axum::http::StatusCode::REQUEST_TIMEOUT,
             Duration::from_secs(600),
         ))
+        .layer(middleware::from_fn(error::as_problem))
         .layer(TraceLayer::new_for_http())
 }
