@@ -1520,3 +1520,43 @@ async fn malformed_requests_get_problem_json_like_every_other_error() {
     assert!(allow.is_some(), "405 keeps its Allow header");
     t.stop().await;
 }
+
+#[tokio::test]
+async fn cameras_no_job_could_render_are_refused_at_upload() {
+    let mut t = TestApp::start().await;
+    let k = t.keys().await;
+    let scene = ply_bytes(&object_scene(200, 0, 6));
+    let identity = json!([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]]);
+    let post = |w: u64, h: u64, frames: usize| {
+        let frame = json!({"file_path": "a", "transform_matrix": identity});
+        let doc = json!({"fl_x": 100.0, "w": w, "h": h, "frames": vec![frame; frames]});
+        let form = Form::new()
+            .part("scene", Part::bytes(scene.clone()).file_name("s.ply"))
+            .part(
+                "cameras",
+                Part::bytes(serde_json::to_vec(&doc).unwrap()).file_name("transforms.json"),
+            );
+        t.client
+            .post(t.url("/v1/assets"))
+            .bearer_auth(&k.owner)
+            .multipart(form)
+            .send()
+    };
+    // 4·10⁹ pixels a view (the probe's job retried three times into the dead letter), and more
+    // views than a job renders: 422 at upload, nothing stored.
+    for (w, h, n, says) in [
+        (65_536, 65_536, 1, "px a side"),
+        (64, 64, 1_001, "at most 1000"),
+    ] {
+        let v = assert_problem(
+            post(w, h, n).await.unwrap(),
+            StatusCode::UNPROCESSABLE_ENTITY,
+        )
+        .await;
+        assert!(v["detail"].as_str().unwrap().contains(says), "{v}");
+    }
+    assert_eq!(stored_blobs(&t.data()), Vec::<PathBuf>::new());
+    // The same file within the limits is an asset.
+    assert_eq!(post(96, 72, 3).await.unwrap().status(), StatusCode::CREATED);
+    t.stop().await;
+}

@@ -142,6 +142,23 @@ fn check(
             if cams.is_empty() {
                 return Err(ApiError::unprocessable("cameras: the file holds no camera"));
             }
+            // What a job will render through them: refused now, not retried into the dead
+            // letter later.
+            use crate::queue::spec::{MAX_SIDE, MAX_VIEWS};
+            if cams.len() > MAX_VIEWS {
+                return Err(ApiError::unprocessable(format!(
+                    "cameras: the file holds {} cameras; a job renders at most {MAX_VIEWS}",
+                    cams.len()
+                )));
+            }
+            if let Some((i, c)) = cams.iter().enumerate().find(|(_, c)| {
+                !(1..=MAX_SIDE).contains(&c.width) || !(1..=MAX_SIDE).contains(&c.height)
+            }) {
+                return Err(ApiError::unprocessable(format!(
+                    "cameras: camera {i} is {}×{} px; a job renders at most {MAX_SIDE} px a side",
+                    c.width, c.height
+                )));
+            }
             Some((cams.len(), kind.as_str().to_string()))
         }
         None => None,

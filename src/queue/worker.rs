@@ -420,9 +420,90 @@ async fn run_job(ctx: &Ctx, w: &WorkerSpec, c: Claimed) {
 
 async fn fail(ctx: &Ctx, job: uuid::Uuid, token: uuid::Uuid, error: &str) {
     ctx.status.failed.fetch_add(1, Ordering::Relaxed);
-    match ctx.store.fail(job, token, error).await {
+    // The owner reads the recorded text (`GET /v1/jobs/{id}`): the server's own folders are
+    // named there only as placeholders; the log keeps the whole text.
+    let shown = redact_paths(error, &ctx.cfg.data_dir);
+    match ctx.store.fail(job, token, &shown).await {
         Ok(state) => tracing::warn!(%error, ?state, "job failed"),
         Err(StoreError::LeaseLost) => tracing::warn!(%error, "job failed after its lease was lost"),
         Err(e) => tracing::error!(%error, store_error = %e, "recording a job failure failed"),
+    }
+}
+
+/// `text` with every mention of the data folder (as configured and canonical) and of the
+/// system's temporary folder replaced by `<data>` / `<tmp>`: what a client may read of an
+/// error that happened on the server.
+pub(crate) fn redact_paths(text: &str, data_dir: &std::path::Path) -> String {
+    let mut roots: Vec<(String, &str)> = Vec::new();
+    let mut add = |p: &std::path::Path, name: &'static str| {
+        let s = p.to_string_lossy().trim_end_matches('/').to_string();
+        if s.len() > 1 {
+            roots.push((s, name));
+        }
+    };
+    if let Ok(c) = data_dir.canonicalize() {
+        add(&c, "<data>");
+    }
+    if data_dir.is_absolute() {
+        add(data_dir, "<data>");
+    } else if let Ok(cwd) = std::env::current_dir() {
+        add(&cwd.join(data_dir), "<data>");
+    }
+    let tmp = std::env::temp_dir();
+    if let Ok(c) = tmp.canonicalize() {
+        add(&c, "<tmp>");
+    }
+    add(&tmp, "<tmp>");
+    // One pass, longest root first (a data folder inside the temp folder reads <data>); a
+    // root counts only where a path starts and where one of its components ends (`/tmpfoo`
+    // and `…/blobs/tmp` are not the temp folder).
+    roots.sort_by(|a, b| b.0.len().cmp(&a.0.len()));
+    let mut out = String::with_capacity(text.len());
+    let mut i = 0;
+    'scan: while i < text.len() {
+        let path_char = |c: char| c.is_alphanumeric() || matches!(c, '_' | '-' | '.' | '/');
+        let starts = text[..i].chars().next_back().is_none_or(|c| !path_char(c));
+        for (root, name) in roots.iter().filter(|_| starts) {
+            if text[i..].starts_with(root.as_str()) {
+                let end = i + root.len();
+                let boundary = text[end..]
+                    .chars()
+                    .next()
+                    .is_none_or(|c| !(c.is_alphanumeric() || matches!(c, '_' | '-' | '.')));
+                if boundary {
+                    out.push_str(name);
+                    i = end;
+                    continue 'scan;
+                }
+            }
+        }
+        let c = text[i..].chars().next().expect("in bounds");
+        out.push(c);
+        i += c.len_utf8();
+    }
+    out
+}
+
+#[cfg(test)]
+mod redact_tests {
+    use super::redact_paths;
+
+    #[test]
+    fn server_folders_never_reach_a_clients_error_text() {
+        let data = tempfile::tempdir().unwrap();
+        let blob = data.path().join("blobs/tmp/.tmpAbC");
+        let text = format!("cannot read {}: no such file", blob.display());
+        let shown = redact_paths(&text, data.path());
+        assert_eq!(shown, "cannot read <data>/blobs/tmp/.tmpAbC: no such file");
+        let other = std::env::temp_dir().join("x.ply");
+        let shown = redact_paths(&format!("at {}", other.display()), data.path());
+        assert_eq!(shown, "at <tmp>/x.ply");
+        assert_eq!(redact_paths("nothing here", data.path()), "nothing here");
+        let tmp = std::env::temp_dir()
+            .to_string_lossy()
+            .trim_end_matches('/')
+            .to_string();
+        let near = format!("{tmp}foo/x");
+        assert_eq!(redact_paths(&near, data.path()), near);
     }
 }
