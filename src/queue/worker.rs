@@ -457,7 +457,7 @@ pub(crate) fn redact_paths(text: &str, data_dir: &std::path::Path) -> String {
     // One pass, longest root first (a data folder inside the temp folder reads <data>); a
     // root counts only where a path starts and where one of its components ends (`/tmpfoo`
     // and `…/blobs/tmp` are not the temp folder).
-    roots.sort_by(|a, b| b.0.len().cmp(&a.0.len()));
+    roots.sort_by_key(|r| std::cmp::Reverse(r.0.len()));
     let mut out = String::with_capacity(text.len());
     let mut i = 0;
     'scan: while i < text.len() {
