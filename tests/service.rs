@@ -600,13 +600,43 @@ async fn missing_or_wrong_scopes_are_401_and_403() {
         .await
         .unwrap();
     assert_problem(r, StatusCode::NOT_FOUND).await;
-    // The auditor may read it.
+    // The auditor may read it, but not download the owner's scene; the admin may.
     assert_eq!(
         t.get(&k.auditor, &format!("/v1/assets/{id}"))
             .await
             .status(),
         StatusCode::OK
     );
+    let r = t.get(&k.auditor, &format!("/v1/assets/{id}/file")).await;
+    assert_problem(r, StatusCode::FORBIDDEN).await;
+    let admin = t.admin.clone();
+    let r = t.get(&admin, &format!("/v1/assets/{id}/file")).await;
+    assert_eq!(r.status(), StatusCode::OK);
+    // Verifying against an id that does not exist and against one without a watermark read
+    // the same: a verifier learns nothing about which ids exist.
+    let png = {
+        let mut v = vec![];
+        image::DynamicImage::ImageRgb8(image::RgbImage::new(64, 64))
+            .write_to(&mut std::io::Cursor::new(&mut v), image::ImageFormat::Png)
+            .unwrap();
+        v
+    };
+    let mut answers = vec![];
+    for asset in [id.to_string(), uuid::Uuid::new_v4().to_string()] {
+        let form = Form::new()
+            .part("image", Part::bytes(png.clone()).file_name("v.png"))
+            .text("asset_id", asset);
+        let r = t
+            .client
+            .post(t.url("/v1/verify"))
+            .bearer_auth(&k.verifier)
+            .multipart(form)
+            .send()
+            .await
+            .unwrap();
+        answers.push(assert_problem(r, StatusCode::NOT_FOUND).await);
+    }
+    assert_eq!(answers[0], answers[1]);
     // A revoked key stops working.
     let admin = t.admin.clone();
     let created: Value = t

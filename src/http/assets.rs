@@ -361,6 +361,7 @@ pub async fn file(
     headers: HeaderMap,
 ) -> ApiResult<Response> {
     let a = readable(&st, &caller, parse_id(&id)?).await?;
+    caller.may_download(&a.owner)?;
     let etag = format!("\"{}\"", a.sha256);
     if headers
         .get(header::IF_NONE_MATCH)

@@ -51,6 +51,21 @@ impl Caller {
         }
     }
 
+    /// Whether the caller may download `owner`'s scene file: the owner or an admin. Auditors
+    /// read every asset's metadata, report, attribution and audit trail — what a dispute
+    /// needs — but not the scene itself, which is the owner's work (403, as they already see
+    /// that the asset exists).
+    pub fn may_download(&self, owner: &str) -> ApiResult<()> {
+        if owner == self.id() || self.has(Scope::Admin) {
+            Ok(())
+        } else {
+            Err(ApiError::forbidden(
+                "only the asset's owner (or an admin) may download its scene file; auditors read \
+                 its metadata, report, attribution and audit trail",
+            ))
+        }
+    }
+
     /// Like [`Caller::may_read`] for changes: only the owner or an admin.
     pub fn may_write(&self, owner: &str) -> ApiResult<()> {
         if owner == self.id() || self.has(Scope::Admin) {

@@ -159,13 +159,18 @@ pub async fn verify(
     }
     check_pixels(&images, st.cfg.max_verify_pixels)?;
     // Candidates: the asset's payload (or its watermarked versions'), or every registered one.
+    // An unknown id and an asset without a finished watermark get the same 404: a verifier
+    // learns no more than that this id carries no registered watermark.
+    let unregistered = || {
+        ApiError::new(
+            axum::http::StatusCode::NOT_FOUND,
+            "Not found",
+            "no registered watermark for this asset id (unknown, or no finished watermarking job)",
+        )
+    };
     let candidates: Vec<Candidate> = match asset_id {
         Some(id) => {
-            let a = st
-                .store
-                .get_asset(id)
-                .await?
-                .ok_or_else(|| ApiError::not_found("asset"))?;
+            let a = st.store.get_asset(id).await?.ok_or_else(unregistered)?;
             let ids = match a.kind {
                 AssetKind::Watermarked => vec![a.id],
                 AssetKind::Original => st
@@ -183,9 +188,7 @@ pub async fn verify(
                 }
             }
             if c.is_empty() {
-                return Err(ApiError::unprocessable(
-                    "this asset has no registered watermark (no finished watermarking job)",
-                ));
+                return Err(unregistered());
             }
             c
         }
