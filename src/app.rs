@@ -51,6 +51,7 @@ impl App {
             None => plan_workers(&cfg).await,
         };
         let cfg_header_timeout = cfg.header_timeout();
+        let cfg_limits = (cfg.verify_per_minute, cfg.auth_failures_per_minute);
         let cfg = Arc::new(cfg);
         let (shutdown, rx) = watch::channel(false);
         let wake = Arc::new(Notify::new());
@@ -72,6 +73,7 @@ impl App {
             metrics: Arc::new(Metrics::default()),
             verify_slots,
             upload_slots,
+            limits: Arc::new(crate::http::limit::Limits::new(cfg_limits.0, cfg_limits.1)),
         };
         let app = router(state);
         let rx_gc = rx.clone();

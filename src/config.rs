@@ -83,6 +83,13 @@ pub struct Config {
     /// waiting for it closes the connection, in milliseconds (a client trickling its header
     /// cannot hold a connection open).
     pub header_timeout_ms: u64,
+    /// Verifications one API key may submit a minute (in bursts of as many); further ones get
+    /// 429 with `Retry-After`.
+    pub verify_per_minute: u32,
+    /// Requests with a missing, malformed, unknown or revoked API key one client address may
+    /// make a minute; past that, every request from it gets 429 with `Retry-After` until the
+    /// budget refills (guessing keys is slowed down, valid keys from other addresses are not).
+    pub auth_failures_per_minute: u32,
     /// Family-wise false-positive rate of verification decisions.
     pub fpr: f64,
     /// Job lease; workers heartbeat every third of it.
@@ -120,6 +127,8 @@ impl Default for Config {
             upload_wait_ms: 10_000,
             body_idle_timeout_ms: 30_000,
             header_timeout_ms: 10_000,
+            verify_per_minute: 120,
+            auth_failures_per_minute: 30,
             fpr: 1e-6,
             lease_seconds: 60,
             max_attempts: 3,
@@ -261,6 +270,9 @@ impl Config {
         }
         if self.body_idle_timeout_ms == 0 {
             return bad("body_idle_timeout_ms must be at least 1");
+        }
+        if self.verify_per_minute == 0 || self.auth_failures_per_minute == 0 {
+            return bad("verify_per_minute and auth_failures_per_minute must be at least 1");
         }
         if self.header_timeout_ms == 0 {
             return bad("header_timeout_ms must be at least 1");

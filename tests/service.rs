@@ -1590,3 +1590,60 @@ async fn cameras_no_job_could_render_are_refused_at_upload() {
     assert_eq!(post(96, 72, 3).await.unwrap().status(), StatusCode::CREATED);
     t.stop().await;
 }
+
+#[tokio::test]
+async fn verifications_and_bad_keys_are_rate_limited_with_retry_after() {
+    let mut t = TestApp::start_with(|c| {
+        c.verify_per_minute = 2;
+        c.auth_failures_per_minute = 3;
+    })
+    .await;
+    let k = t.keys().await;
+    let png = {
+        let mut v = vec![];
+        image::DynamicImage::ImageRgb8(image::RgbImage::new(64, 64))
+            .write_to(&mut std::io::Cursor::new(&mut v), image::ImageFormat::Png)
+            .unwrap();
+        v
+    };
+    let verify = |token: String| {
+        let form = Form::new().part("image", Part::bytes(png.clone()).file_name("v.png"));
+        t.client
+            .post(t.url("/v1/verify"))
+            .bearer_auth(token)
+            .multipart(form)
+            .send()
+    };
+    // Two verifications a minute per key: the third is 429 with Retry-After; another key is
+    // not affected.
+    for _ in 0..2 {
+        let r = verify(k.verifier.clone()).await.unwrap();
+        assert_ne!(r.status(), StatusCode::TOO_MANY_REQUESTS);
+    }
+    let r = verify(k.verifier.clone()).await.unwrap();
+    let wait: u64 = r.headers()["retry-after"]
+        .to_str()
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!((1..=60).contains(&wait), "{wait}");
+    assert_problem(r, StatusCode::TOO_MANY_REQUESTS).await;
+    let r = verify(k.owner.clone()).await.unwrap();
+    assert_ne!(r.status(), StatusCode::TOO_MANY_REQUESTS);
+
+    // Three bad keys a minute per address: each a 401; then every request from the address
+    // that needs a key is 429 — a right guess included, so guessing learns nothing — while
+    // the unauthenticated health check still answers.
+    for bad in ["smk_nope", "smk_nope2", "smk_nope3"] {
+        let r = t.get(bad, "/v1/audit").await;
+        assert_problem(r, StatusCode::UNAUTHORIZED).await;
+    }
+    let r = t.get("smk_nope4", "/v1/audit").await;
+    assert!(r.headers().contains_key("retry-after"));
+    assert_problem(r, StatusCode::TOO_MANY_REQUESTS).await;
+    let r = t.get(&k.auditor, "/v1/audit").await;
+    assert_problem(r, StatusCode::TOO_MANY_REQUESTS).await;
+    let r = t.client.get(t.url("/healthz")).send().await.unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    t.stop().await;
+}

@@ -2,7 +2,7 @@
 //! owner (upload, watermark, read own assets), verifier (submit disputes), auditor (read the
 //! audit log and every asset's attribution), admin (everything, and API keys).
 
-use axum::extract::FromRequestParts;
+use axum::extract::{ConnectInfo, FromRequestParts};
 use axum::http::header;
 use axum::http::request::Parts;
 
@@ -80,10 +80,30 @@ impl FromRequestParts<AppState> for Caller {
     type Rejection = ApiError;
 
     async fn from_request_parts(parts: &mut Parts, state: &AppState) -> Result<Self, ApiError> {
-        let value = parts
-            .headers
-            .get(header::AUTHORIZATION)
-            .ok_or_else(|| ApiError::unauthorized("missing Authorization: Bearer <API key>"))?;
+        // A client address that has spent its failed-authentication budget is refused before
+        // its key is even looked at.
+        let client = crate::http::limit::client_key(
+            parts
+                .extensions
+                .get::<ConnectInfo<std::net::SocketAddr>>()
+                .map(|c| c.0.ip()),
+        );
+        let failures = &state.limits.auth_failures;
+        if let Some(wait) = failures.exhausted(&client) {
+            return Err(ApiError::too_many(
+                "too many requests with a bad API key from this address",
+                wait,
+            ));
+        }
+        let failed = |e: ApiError| {
+            let _ = failures.take(&client);
+            e
+        };
+        let value = parts.headers.get(header::AUTHORIZATION).ok_or_else(|| {
+            failed(ApiError::unauthorized(
+                "missing Authorization: Bearer <API key>",
+            ))
+        })?;
         let token = value
             .to_str()
             .ok()
@@ -91,11 +111,13 @@ impl FromRequestParts<AppState> for Caller {
             .map(str::trim)
             .filter(|t| !t.is_empty())
             .ok_or_else(|| {
-                ApiError::unauthorized("the Authorization header is not 'Bearer <API key>'")
+                failed(ApiError::unauthorized(
+                    "the Authorization header is not 'Bearer <API key>'",
+                ))
             })?;
         match state.store.authenticate(token).await? {
             Some(k) => Ok(Caller(k)),
-            None => Err(ApiError::unauthorized("unknown or revoked API key")),
+            None => Err(failed(ApiError::unauthorized("unknown or revoked API key"))),
         }
     }
 }

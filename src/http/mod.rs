@@ -8,6 +8,7 @@ pub mod error;
 pub mod health;
 pub mod jobs;
 pub mod keys;
+pub mod limit;
 pub mod openapi;
 pub mod server;
 pub mod verify;
@@ -46,6 +47,8 @@ pub struct AppState {
     pub verify_slots: Arc<tokio::sync::Semaphore>,
     /// Parsing slots of `POST /v1/assets` (`upload_concurrency` permits).
     pub upload_slots: Arc<tokio::sync::Semaphore>,
+    /// Rate limits (`verify_per_minute`, `auth_failures_per_minute`).
+    pub limits: Arc<limit::Limits>,
 }
 
 /// Waits up to `wait` for one of `slots`; 503 with `Retry-After: 1` and `busy` as its detail when

@@ -113,6 +113,16 @@ pub async fn verify(
     mut mp: Multipart,
 ) -> ApiResult<Response> {
     caller.require(&[Scope::Verifier, Scope::Owner, Scope::Auditor])?;
+    // Before the body is read: a key over its budget costs the server nothing more.
+    st.limits.verify.take(&caller.id()).map_err(|wait| {
+        ApiError::too_many(
+            format!(
+                "this API key may submit {} verifications a minute",
+                st.cfg.verify_per_minute
+            ),
+            wait,
+        )
+    })?;
     let mut images = vec![];
     let mut hashes = vec![];
     let mut asset_id: Option<Uuid> = None;
