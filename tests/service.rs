@@ -1647,3 +1647,98 @@ async fn verifications_and_bad_keys_are_rate_limited_with_retry_after() {
     assert_eq!(r.status(), StatusCode::OK);
     t.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_backup_of_a_live_server_mid_job_restores_whole() {
+    use splatmark::store::backup::{backup, restore};
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = config(dir.path());
+    let master = MasterKey::generate().to_hex();
+    let mut t = TestApp::boot(dir, cfg.clone(), master.clone(), None).await;
+    let k = t.keys().await;
+    // A finished watermark (so a key is registered) and a job that is running at backup time.
+    let (asset_id, done_job) = t.small_object_job(&k.owner, 3).await;
+    let done = t
+        .wait_job(&k.owner, &done_job, Duration::from_secs(300))
+        .await;
+    assert_eq!(done["state"], "done", "{done}");
+    let marked_id: uuid::Uuid = done["result_asset_id"].as_str().unwrap().parse().unwrap();
+    let (_, running) = t.small_object_job(&k.owner, 100_000).await;
+    t.wait_job_until(&k.owner, &running, Duration::from_secs(300), |j| {
+        j["state"] == "running" && j["step"].as_u64() > Some(0)
+    })
+    .await;
+    let out = t.dir.path().join("backup");
+    let step = |j: &Value| j["step"].as_u64().unwrap_or(0);
+    let before: Value = t
+        .get(&k.owner, &format!("/v1/jobs/{running}"))
+        .await
+        .json()
+        .await
+        .unwrap();
+    let m = backup(&t.data(), &out).await.unwrap();
+    // The service kept working meanwhile: the running job advances past where it was.
+    t.wait_job_until(&k.owner, &running, Duration::from_secs(120), |j| {
+        step(j) > step(&before)
+    })
+    .await;
+    t.stop().await;
+    // Two uploads of the same bytes and the watermarked result: 3 assets, 2 blobs.
+    assert!(m.assets >= 3 && m.blobs.len() >= 2, "{m:?}");
+    // A second backup into the same folder is refused.
+    assert!(backup(&t.data(), &out).await.is_err());
+
+    // Restore into a fresh folder: every asset and its blob, the keys (same master key), the
+    // audit chain up to the snapshot.
+    let fresh = tempfile::tempdir().unwrap();
+    let restored_dir = fresh.path().join("data");
+    restore(&out, &restored_dir).await.unwrap();
+    let s = splatmark::store::Store::open(&restored_dir, MasterKey::from_hex(&master).unwrap())
+        .await
+        .unwrap();
+    assert_eq!(s.integrity_check().await.unwrap(), "ok");
+    let chain = s.verify_audit_chain().await.unwrap();
+    assert!(chain.ok);
+    assert_eq!(chain.rows, m.audit_rows);
+    assert_eq!(chain.head_hash, m.audit_head);
+    let original = s
+        .get_asset(asset_id.parse().unwrap())
+        .await
+        .unwrap()
+        .unwrap();
+    let bytes = s.blobs().read(&original.sha256).unwrap();
+    let digest = <sha2::Sha256 as sha2::Digest>::digest(&bytes);
+    assert_eq!(hex::encode(digest), original.sha256);
+    let key = s
+        .key_of(marked_id)
+        .await
+        .unwrap()
+        .expect("the key came back");
+    assert_eq!(splatmark::verify::message::to_hex(&key.message), "0badc0de");
+    s.close().await;
+    // Restoring over a database is refused; so is a damaged backup, which leaves nothing.
+    assert!(restore(&out, &restored_dir).await.is_err());
+    let blob = &m.blobs[0].sha256;
+    let f = out.join("blobs").join(&blob[..2]).join(&blob[2..]);
+    std::fs::write(&f, flip_first_bit(&f)).unwrap();
+    let other = fresh.path().join("other");
+    let e = restore(&out, &other).await.unwrap_err();
+    assert!(e.to_string().contains("damaged"), "{e}");
+    assert!(!other.join("splatmark.db").exists());
+    // Under another master key the restored keys do not open: the store refuses to start.
+    let third = fresh.path().join("third");
+    std::fs::write(&f, flip_first_bit(&f)).unwrap();
+    restore(&out, &third).await.unwrap();
+    assert!(
+        splatmark::store::Store::open(&third, MasterKey::generate())
+            .await
+            .is_err()
+    );
+}
+
+/// The bytes of the file at `f` with bit 0 of its first byte flipped.
+fn flip_first_bit(f: &Path) -> Vec<u8> {
+    let mut b = std::fs::read(f).unwrap();
+    b[0] ^= 1;
+    b
+}

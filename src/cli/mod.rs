@@ -81,6 +81,13 @@ enum Command {
         #[command(subcommand)]
         command: Box<serve::KeysCommand>,
     },
+    /// Back up the service's data folder while it runs: a consistent database snapshot, every
+    /// referenced blob and a manifest of SHA-256s (the master key is not included: keep it
+    /// apart). Prints the manifest.
+    Backup(Box<serve::BackupArgs>),
+    /// Restore a backup into a fresh data folder, checking every file against the manifest and
+    /// the master key against the database, then the database's integrity and the audit chain.
+    Restore(Box<serve::RestoreArgs>),
 }
 
 #[derive(Subcommand, Debug)]
@@ -457,6 +464,8 @@ fn run(cli: Cli) -> Result<()> {
         Command::Eval(args) => embed::eval_scene_cmd(&args),
         Command::Serve(args) => serve::serve_cmd(&args),
         Command::Keys { command } => serve::keys_cmd(&command),
+        Command::Backup(args) => serve::backup_cmd(&args),
+        Command::Restore(args) => serve::restore_cmd(&args),
     }
 }
 

@@ -21,6 +21,7 @@ pub(crate) mod api_keys;
 mod assets;
 pub(crate) mod attribution;
 mod audit;
+pub mod backup;
 mod blobs;
 pub(crate) mod crypto;
 mod error;
@@ -132,6 +133,14 @@ impl Store {
     /// The blob store.
     pub fn blobs(&self) -> &BlobStore {
         &self.inner.blobs
+    }
+
+    /// SQLite's `PRAGMA integrity_check`: "ok", or the problems it found, one per line.
+    pub async fn integrity_check(&self) -> Result<String> {
+        let rows: Vec<String> = sqlx::query_scalar("PRAGMA integrity_check")
+            .fetch_all(&self.pool)
+            .await?;
+        Ok(rows.join("\n"))
     }
 
     /// A trivial query (for `/readyz`).
