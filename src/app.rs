@@ -146,7 +146,7 @@ async fn bootstrap_admin(store: &Store, cfg: &Config) -> Result<Option<PathBuf>>
         return Ok(None);
     }
     let (_, token) = store
-        .create_api_key("bootstrap-admin", &[Scope::Admin])
+        .create_api_key("system", "bootstrap-admin", &[Scope::Admin])
         .await?;
     let path = cfg.data_dir.join("admin.token");
     write_secret(&path, token.as_bytes())?;

@@ -120,7 +120,7 @@ pub(crate) fn keys_cmd(c: &KeysCommand) -> Result<()> {
     rt.block_on(async {
         std::fs::create_dir_all(&cfg.data_dir)?;
         let store = Store::open(&cfg.data_dir, crate::app::master_key(&cfg)?).await?;
-        let (key, token) = store.create_api_key(name, &scopes).await?;
+        let (key, token) = store.create_api_key("cli", name, &scopes).await?;
         eprintln!(
             "created API key {} ({}) with scopes {:?}",
             key.id, key.name, key.scopes

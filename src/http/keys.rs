@@ -37,15 +37,9 @@ pub async fn create(
             "a key needs a name (1 to 100 characters) and at least one scope",
         ));
     }
-    let (key, token) = st.store.create_api_key(name, &k.scopes).await?;
-    st.store
-        .append_audit(AuditEntry {
-            actor: caller.id(),
-            action: "key.create".into(),
-            asset_id: None,
-            job_id: None,
-            details: json!({"key_id": key.id, "name": key.name, "scopes": key.scopes}),
-        })
+    let (key, token) = st
+        .store
+        .create_api_key(&caller.id(), name, &k.scopes)
         .await?;
     Ok((
         StatusCode::CREATED,

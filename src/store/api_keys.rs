@@ -81,8 +81,15 @@ impl ApiKey {
 }
 
 impl Store {
-    /// Creates a key; returns it and its token (shown once, only its hash is stored).
-    pub async fn create_api_key(&self, name: &str, scopes: &[Scope]) -> Result<(ApiKey, String)> {
+    /// Creates a key for `actor` (the admin key's id, `system` at bootstrap, `cli` from the
+    /// shell); returns it and its token (shown once, only its hash is stored). The key and its
+    /// `key.create` audit row are written in one transaction: no key exists unaudited.
+    pub async fn create_api_key(
+        &self,
+        actor: &str,
+        name: &str,
+        scopes: &[Scope],
+    ) -> Result<(ApiKey, String)> {
         if name.is_empty() || name.len() > 255 || name.chars().any(char::is_control) {
             return Err(StoreError::invalid(
                 "key name must be 1..=255 bytes without control characters",
@@ -97,6 +104,7 @@ impl Store {
         let mut secret = zeroize::Zeroizing::new([0u8; 32]);
         fill_random(&mut secret[..]);
         let token = format!("{TOKEN_PREFIX}{}", hex::encode(&secret[..]));
+        let mut tx = self.begin_immediate().await?;
         let key = ApiKey {
             id: Uuid::new_v4(),
             name: name.to_owned(),
@@ -112,9 +120,15 @@ impl Store {
         .bind(token_hash(&token))
         .bind(join_scopes(&key.scopes))
         .bind(&key.created_at)
-        .execute(&self.pool)
+        .execute(&mut *tx)
         .await
         .map_err(StoreError::from_db)?;
+        let entry = super::AuditEntry {
+            details: serde_json::json!({"key_id": key.id, "name": key.name, "scopes": key.scopes}),
+            ..super::AuditEntry::new(actor, "key.create")
+        };
+        super::audit::append_in(&mut tx, &entry).await?;
+        tx.commit().await?;
         Ok((key, token))
     }
 

@@ -1645,7 +1645,7 @@ async fn api_keys_authenticate_revoke_and_store_only_the_hash() {
     let (dir, store) = setup().await;
     assert_eq!(store.api_key_count().await.expect("count"), 0);
     let (key, token) = store
-        .create_api_key("ci", &[Scope::Verifier, Scope::Owner, Scope::Owner])
+        .create_api_key("cli", "ci", &[Scope::Verifier, Scope::Owner, Scope::Owner])
         .await
         .expect("create");
     assert!(token.starts_with(TOKEN_PREFIX) && token.len() == 68);
@@ -1686,7 +1686,16 @@ async fn api_keys_authenticate_revoke_and_store_only_the_hash() {
 
     assert_eq!("auditor".parse::<Scope>().expect("scope"), Scope::Auditor);
     assert!("root".parse::<Scope>().is_err());
-    assert!(store.create_api_key("x", &[]).await.is_err());
+    assert!(store.create_api_key("cli", "x", &[]).await.is_err());
+    // Every key that exists was audited once, by whoever created it; a refused one was not.
+    assert_eq!(
+        scalar(
+            &dir,
+            "SELECT COUNT(*) FROM audit WHERE action = 'key.create' AND actor = 'cli'",
+        )
+        .await,
+        1
+    );
     let audited = || async {
         scalar(
             &dir,
