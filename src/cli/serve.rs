@@ -101,10 +101,27 @@ pub(crate) enum KeysCommand {
         #[command(flatten)]
         serve: ServeArgs,
     },
+    /// Re-seal every secret under a fresh master key, atomically, with the service stopped.
+    /// The new key is written next to the old one first (`<key file>.new`, 0600), then the
+    /// database is re-sealed in one transaction, then the new file replaces the old one; with
+    /// `SPLATMARK_MASTER_KEY` set, the new key goes to `--new-key-file` instead.
+    RotateMaster {
+        /// Where to write the new key when the current one comes from the environment.
+        #[arg(long)]
+        new_key_file: Option<PathBuf>,
+        #[command(flatten)]
+        serve: ServeArgs,
+    },
 }
 
 pub(crate) fn keys_cmd(c: &KeysCommand) -> Result<()> {
-    let KeysCommand::Create { name, scope, serve } = c;
+    let (name, scope, serve) = match c {
+        KeysCommand::Create { name, scope, serve } => (name, scope, serve),
+        KeysCommand::RotateMaster {
+            new_key_file,
+            serve,
+        } => return rotate_master_cmd(new_key_file.as_deref(), serve),
+    };
     let scopes = scope
         .iter()
         .map(|s| {
@@ -216,6 +233,63 @@ pub(crate) fn restore_cmd(a: &RestoreArgs) -> Result<()> {
             }))?
         );
         anyhow::ensure!(ok, "the restored data does not verify");
+        Ok(())
+    })
+}
+
+fn rotate_master_cmd(new_key_file: Option<&std::path::Path>, serve: &ServeArgs) -> Result<()> {
+    let cfg = serve.config()?;
+    anyhow::ensure!(
+        cfg.data_dir.join(crate::store::DB_FILE).is_file(),
+        "no database in {}",
+        cfg.data_dir.display()
+    );
+    let from_env = std::env::var_os(crate::store::MASTER_KEY_ENV).is_some();
+    let current_file = cfg.master_key_path();
+    anyhow::ensure!(
+        from_env || current_file.is_file(),
+        "no master key at {} (nor {})",
+        current_file.display(),
+        crate::store::MASTER_KEY_ENV
+    );
+    let (staged, final_path) = match (from_env, new_key_file) {
+        (true, Some(f)) => (f.to_path_buf(), None),
+        (true, None) => anyhow::bail!(
+            "the master key comes from {}: say where the new one goes with --new-key-file",
+            crate::store::MASTER_KEY_ENV
+        ),
+        (false, _) => {
+            let mut s = current_file.clone().into_os_string();
+            s.push(".new");
+            (PathBuf::from(s), Some(current_file.clone()))
+        }
+    };
+    anyhow::ensure!(
+        !staged.exists(),
+        "{} exists (left by an interrupted rotation?): if the database opens with it, move it \
+         over the key file; otherwise remove it",
+        staged.display()
+    );
+    let old = crate::app::master_key(&cfg)?;
+    let new = crate::store::MasterKey::load_or_create(&staged)
+        .with_context(|| format!("cannot write the new key {}", staged.display()))?;
+    runtime()?.block_on(async {
+        let store = Store::open(&cfg.data_dir, old).await?;
+        let n = store.rotate_master_key(&new, "cli").await?;
+        store.close().await;
+        if let Some(f) = &final_path {
+            std::fs::rename(&staged, f).with_context(|| {
+                format!(
+                    "the database is re-sealed under {}: move it over {} by hand",
+                    staged.display(),
+                    f.display()
+                )
+            })?;
+        }
+        eprintln!(
+            "re-sealed {n} secrets under the new master key in {}",
+            final_path.as_ref().unwrap_or(&staged).display()
+        );
         Ok(())
     })
 }

@@ -290,3 +290,87 @@ pub(crate) fn validate_message(message: &[bool]) -> Result<()> {
     }
     Ok(())
 }
+
+impl Store {
+    /// Re-seals every secret of the database — each key's message, mask and reference, each
+    /// job's message and mask, the master-key check value — under `new`, in one transaction
+    /// with one `master_key.rotate` audit row by `actor`: either all of them or none move. The
+    /// store (this handle and every other process's) must then be reopened with `new`; run it
+    /// with the service stopped, or rows the service seals meanwhile stay under the old key.
+    /// Returns how many sealed values were re-sealed.
+    pub async fn rotate_master_key(&self, new: &super::MasterKey, actor: &str) -> Result<u64> {
+        let next = super::crypto::Cipher::new(new);
+        let mut tx = self.begin_immediate().await?;
+        let mut resealed = 0u64;
+        // (table, id column, [(nonce column, ciphertext column, AAD of the row's id)])
+        type Aad = fn(&str) -> String;
+        let tables: [(&str, &str, Vec<(&str, &str, Aad)>); 2] = [
+            (
+                "keys",
+                "asset_id",
+                vec![
+                    ("nonce", "ciphertext", |id| id.to_string()),
+                    ("mask_nonce", "mask_ct", |id| mask_aad(id)),
+                    ("reference_nonce", "reference_ct", |id| reference_aad(id)),
+                ],
+            ),
+            (
+                "jobs",
+                "id",
+                vec![
+                    ("message_nonce", "message_ct", |id| super::jobs::job_aad(id)),
+                    ("mask_nonce", "mask_ct", |id| {
+                        mask_aad(&super::jobs::job_aad(id))
+                    }),
+                ],
+            ),
+        ];
+        for (table, id_col, columns) in &tables {
+            for (nonce_col, ct_col, aad) in columns {
+                // Table and column names are the constants above, never input.
+                let rows = sqlx::query(sqlx::AssertSqlSafe(format!(
+                    "SELECT {id_col} AS id, {nonce_col} AS n, {ct_col} AS c FROM {table} \
+                     WHERE {nonce_col} IS NOT NULL AND {ct_col} IS NOT NULL"
+                )))
+                .fetch_all(&mut *tx)
+                .await?;
+                for r in rows {
+                    let id: String = r.try_get("id")?;
+                    let aad = aad(&id);
+                    let plain = self.cipher().open(
+                        &r.try_get::<Vec<u8>, _>("n")?,
+                        &r.try_get::<Vec<u8>, _>("c")?,
+                        aad.as_bytes(),
+                    )?;
+                    let s = next.seal(&plain, aad.as_bytes())?;
+                    sqlx::query(sqlx::AssertSqlSafe(format!(
+                        "UPDATE {table} SET {nonce_col} = ?, {ct_col} = ? WHERE {id_col} = ?"
+                    )))
+                    .bind(s.nonce)
+                    .bind(s.ciphertext)
+                    .bind(&id)
+                    .execute(&mut *tx)
+                    .await?;
+                    resealed += 1;
+                }
+            }
+        }
+        let check = next.seal(
+            super::crypto::KEY_CHECK_PLAINTEXT,
+            super::crypto::KEY_CHECK_AAD,
+        )?;
+        let mut value = check.nonce;
+        value.extend_from_slice(&check.ciphertext);
+        sqlx::query("UPDATE meta SET value = ? WHERE key = 'key_check'")
+            .bind(value)
+            .execute(&mut *tx)
+            .await?;
+        let entry = super::AuditEntry {
+            details: serde_json::json!({"resealed": resealed}),
+            ..super::AuditEntry::new(actor, "master_key.rotate")
+        };
+        super::audit::append_in(&mut tx, &entry).await?;
+        tx.commit().await?;
+        Ok(resealed)
+    }
+}

@@ -657,6 +657,72 @@ async fn an_asset_reference_is_registered_sealed_and_checked() {
 }
 
 #[tokio::test]
+async fn rotating_the_master_key_reseals_everything_and_the_old_key_opens_nothing() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let old = MasterKey::generate();
+    let store = Store::open(dir.path(), old.clone()).await.expect("open");
+    // A registered key with its mask and reference, and a job still queued.
+    let a = original(&store).await;
+    enqueue(&store, a.id, 3).await;
+    let c = store.claim("w1", LONG).await.expect("claim").expect("job");
+    let reference: Vec<f32> = (0..c.key.bits()).map(|i| i as f32 * 0.5 - 3.0).collect();
+    let wm = store
+        .publish_result(
+            c.job.id,
+            c.lease_token,
+            watermarked(&store, a.id, 10, b"w"),
+            &c.key,
+            Some(&reference),
+            &records(10),
+            serde_json::Value::Null,
+            entry("watermark.publish"),
+        )
+        .await
+        .expect("publish");
+    let queued = enqueue(&store, a.id, 3).await;
+    let before_bytes = all_files_bytes(&dir);
+    let new = MasterKey::generate();
+    // keys: message, mask, reference; jobs: two × (message, mask).
+    assert_eq!(
+        store.rotate_master_key(&new, "cli").await.expect("rotate"),
+        7
+    );
+    store.close().await;
+    assert!(matches!(
+        Store::open(dir.path(), old).await,
+        Err(StoreError::Crypto)
+    ));
+    let store = Store::open(dir.path(), new)
+        .await
+        .expect("the new key opens it");
+    let reg = store
+        .registration(wm.id)
+        .await
+        .expect("read")
+        .expect("registered");
+    assert_eq!(reg.key, c.key);
+    assert_eq!(reg.reference.as_deref(), Some(&reference[..]));
+    let next = store
+        .claim("w2", LONG)
+        .await
+        .expect("claim")
+        .expect("the queued job");
+    assert_eq!(next.job.id, queued.id);
+    assert_eq!(next.key.bits(), c.key.bits());
+    // Every ciphertext changed (fresh nonces), and the rotation is in the audit chain.
+    assert_ne!(all_files_bytes(&dir), before_bytes);
+    assert_eq!(
+        scalar(
+            &dir,
+            "SELECT COUNT(*) FROM audit WHERE action = 'master_key.rotate'"
+        )
+        .await,
+        1
+    );
+    assert!(store.verify_audit_chain().await.expect("chain").ok);
+}
+
+#[tokio::test]
 async fn every_job_gets_a_secret_random_mask_and_its_result_keeps_it() {
     let (dir, store) = setup().await;
     let a = original(&store).await;
