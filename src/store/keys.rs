@@ -304,7 +304,8 @@ impl Store {
         let mut resealed = 0u64;
         // (table, id column, [(nonce column, ciphertext column, AAD of the row's id)])
         type Aad = fn(&str) -> String;
-        let tables: [(&str, &str, Vec<(&str, &str, Aad)>); 2] = [
+        type Sealed = (&'static str, &'static str, Aad);
+        let tables: [(&str, &str, Vec<Sealed>); 2] = [
             (
                 "keys",
                 "asset_id",
