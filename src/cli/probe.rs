@@ -316,6 +316,10 @@ pub struct QualityArgs {
     /// Render side in pixels.
     #[arg(long)]
     size: Option<u32>,
+    /// Orbit views to embed through (default 24, the CLI's; every 8th held out); the unseen
+    /// views stay the same.
+    #[arg(long)]
+    train_views: Option<usize>,
     /// Embedding options (JSON, as `embed --config`); default: the defaults a user gets.
     #[arg(long)]
     config: Option<PathBuf>,
@@ -348,6 +352,10 @@ pub fn bench_cmd(c: &BenchCommand) -> Result<()> {
     }
     if let Some(s) = a.size {
         o.size = s;
+    }
+    if let Some(n) = a.train_views {
+        anyhow::ensure!(n >= 2, "--train-views must be at least 2");
+        o.train_views = n;
     }
     if let Some(p) = &a.config {
         let bytes = std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?;

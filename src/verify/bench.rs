@@ -82,6 +82,9 @@ pub struct QualityOptions {
     /// Unseen orbit views.
     pub eval_views: usize,
     pub eval_elevations: Vec<f32>,
+    /// Azimuth of the first unseen view (half a training step of the default orbit: the unseen
+    /// views stay the same whatever `train_views`).
+    pub eval_azimuth_offset_deg: f32,
     /// The embedding options (the defaults a user gets).
     pub embed: EmbedOptions,
     pub fpr: f64,
@@ -104,6 +107,7 @@ impl QualityOptions {
             holdout_every_cameras: 4,
             eval_views: 12,
             eval_elevations: vec![0.0, 22.0, 50.0],
+            eval_azimuth_offset_deg: 0.5 * 360.0 / 24.0,
             embed: EmbedOptions::default(),
             fpr: 1e-6,
             seed: 0,
@@ -119,6 +123,7 @@ impl QualityOptions {
             size: 128,
             train_views: 8,
             eval_views: 4,
+            eval_azimuth_offset_deg: 0.5 * 360.0 / 8.0,
             ..Self::full(scenes_dir)
         }
     }
@@ -275,13 +280,12 @@ pub fn views(
         ..OrbitOptions::default()
     };
     let (train, _) = split_views(&orbit_cameras(g, &train_orbit)?, opts.holdout_every);
-    let step = 360.0 / opts.train_views.max(1) as f32;
     let unseen = OrbitOptions {
         count: opts.eval_views,
         elevations_deg: opts.eval_elevations.clone(),
         width: opts.size,
         height: opts.size,
-        azimuth_offset_deg: 0.5 * step,
+        azimuth_offset_deg: opts.eval_azimuth_offset_deg,
         ..OrbitOptions::default()
     };
     Ok((train, orbit_cameras(g, &unseen)?))
