@@ -11,7 +11,7 @@
 use std::collections::BTreeSet;
 use std::fs;
 use std::io::{self, Read, Write};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
@@ -73,11 +73,6 @@ fn copy_hashed(from: &Path, to: &Path) -> io::Result<FileEntry> {
         sha256: hex::encode(h.finalize()),
         size,
     })
-}
-
-fn blob_path(root: &Path, sha256: &str) -> PathBuf {
-    let (head, tail) = sha256.split_at(2);
-    root.join(head).join(tail)
 }
 
 /// Backs up the data folder `data_dir` (the service may be running) into `out`, which must
@@ -149,9 +144,9 @@ pub async fn backup(data_dir: &Path, out: &Path) -> Result<Manifest> {
                     "the database references a bad blob id {id:?}"
                 )));
             }
-            let to = blob_path(&dst_root, id);
+            let to = super::blobs::location(&dst_root, id);
             fs::create_dir_all(to.parent().expect("blob paths have a parent"))?;
-            let e = copy_hashed(&blob_path(&src_root, id), &to)
+            let e = copy_hashed(&super::blobs::location(&src_root, id), &to)
                 .map_err(|e| invalid(format!("blob {id} referenced by the database: {e}")))?;
             if &e.sha256 != id {
                 return Err(invalid(format!(
@@ -192,13 +187,8 @@ pub async fn backup(data_dir: &Path, out: &Path) -> Result<Manifest> {
 }
 
 fn hash_file(p: &Path) -> io::Result<FileEntry> {
-    let mut f = fs::File::open(p)?;
-    let mut h = Sha256::new();
-    let size = io::copy(&mut f, &mut h)?;
-    Ok(FileEntry {
-        sha256: hex::encode(h.finalize()),
-        size,
-    })
+    let (sha256, size) = super::blobs::hash_file(&mut fs::File::open(p)?)?;
+    Ok(FileEntry { sha256, size })
 }
 
 /// Restores the backup folder `from` into `data_dir`, which must hold no database yet: the
@@ -242,8 +232,9 @@ pub async fn restore(from: &Path, data_dir: &Path) -> Result<Manifest> {
             check("the database", &got, &m.database)?;
             for want in &m.blobs {
                 let mut tmp = blobs.temp_file()?;
-                let mut src = fs::File::open(blob_path(&from.join(BLOB_DIR), &want.sha256))
-                    .map_err(|e| invalid(format!("blob {}: {e}", want.sha256)))?;
+                let mut src =
+                    fs::File::open(super::blobs::location(&from.join(BLOB_DIR), &want.sha256))
+                        .map_err(|e| invalid(format!("blob {}: {e}", want.sha256)))?;
                 io::copy(&mut src, tmp.as_file_mut())?;
                 let got = blobs.commit(tmp)?;
                 let got = FileEntry {

@@ -235,8 +235,7 @@ impl BlobStore {
 
     /// Where a (validated) id lives: `root/ab/cdef…`.
     fn location(&self, sha256: &str) -> PathBuf {
-        let (head, tail) = sha256.split_at(2);
-        self.root.join(head).join(tail)
+        location(&self.root, sha256)
     }
 }
 
@@ -255,7 +254,14 @@ fn validate_id(id: &str) -> Result<()> {
     }
 }
 
-fn hash_file(f: &mut File) -> io::Result<(String, u64)> {
+/// Where blob `sha256` (64 hex digits) lives under a blob folder `root`: `root/ab/cdef…`.
+pub(super) fn location(root: &Path, sha256: &str) -> PathBuf {
+    let (head, tail) = sha256.split_at(2);
+    root.join(head).join(tail)
+}
+
+/// SHA-256 (lowercase hex) and size of a file's bytes, read from its start.
+pub(super) fn hash_file(f: &mut File) -> io::Result<(String, u64)> {
     f.seek(SeekFrom::Start(0))?;
     let mut hasher = Sha256::new();
     let mut buf = vec![0u8; 1 << 16];
