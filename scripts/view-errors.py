@@ -9,7 +9,8 @@ the unseen cameras (same order). Every image is decoded alone (`splatmark decode
 and bit i, with m = ±1 the payload bit and r the asset reference:
     noise  n = m·(D(original_v) − r)    the unmarked asset's own view-to-view variation
     signal s = m·(D(marked_v) − D(original_v))    what the finetuning wrote into that view
-and a bit decodes right when n + s > 0. Prints the per-view accuracy, the accuracy without the
+and a bit decodes right when n + s > 0. Decoding goes through `decode --report`, as verification
+does (reference subtracted, view projection applied when the report has them). Prints the per-view accuracy, the accuracy without the
 noise (s > 0) and with the signal's mean over views (n + mean s > 0). Needs numpy.
 """
 import json, subprocess, sys, os, glob
@@ -19,16 +20,19 @@ def logits(d, cache={}):
     out = []
     for f in sorted(glob.glob(d + '/*.png')):
         if f not in cache:
-            r = subprocess.run([sm, 'decode', '--bits', str(BITS), f], capture_output=True, text=True, check=True)
+            r = subprocess.run([sm, 'decode', '--bits', str(BITS), '--report', REPORT, f], capture_output=True, text=True, check=True)
             cache[f] = json.loads(r.stdout)['logits']
         out.append(cache[f])
     return np.array(out)
-rep = json.load(open(sys.argv[1]))
+REPORT = sys.argv[1]
+rep = json.load(open(REPORT))
 BITS = rep['bits']
 msg = rep['message_hex']
 bits = np.array([int(c) for c in ''.join(f'{int(h,16):04b}' for h in msg)]) if isinstance(msg, str) else np.array(msg)
 m = 2 * bits - 1
-ref = np.array(rep.get('reference_logits') or np.zeros(BITS))
+# `decode --report` already decodes relative to the reference (and through the view
+# projection) as verification does.
+ref = np.zeros(BITS)
 for name, o, k in [('train', sys.argv[2], sys.argv[3]), ('unseen', sys.argv[4], sys.argv[5])]:
     O, K = logits(o), logits(k)
     n = (O - ref) * m; s = (K - O) * m; t = n + s

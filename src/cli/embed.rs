@@ -9,6 +9,7 @@ use clap::Args;
 use super::{DeviceArg, LimitArgs, ViewArgs, load};
 use crate::decoder::WatermarkModel;
 use crate::decoder::eval::read_images;
+use crate::decoder::projection::ViewProjection;
 use crate::decoder::train::DeviceChoice;
 use crate::embed::attribution::write_jsonl;
 use crate::embed::pipeline::{EmbedOptions, Phase, embed, split_views};
@@ -324,8 +325,12 @@ fn print_progress(p: &crate::embed::pipeline::Progress, every: usize) {
 }
 
 /// `model` decoding relative to the asset when `report` (an embedding report) carries reference
-/// logits; unchanged without a report or without a reference in it.
-fn with_report_reference(model: WatermarkModel, report: Option<&Path>) -> Result<WatermarkModel> {
+/// logits (and through its view projection when it carries one); unchanged without a report or
+/// without either in it.
+pub(crate) fn with_report_reference(
+    model: WatermarkModel,
+    report: Option<&Path>,
+) -> Result<WatermarkModel> {
     let Some(p) = report else {
         return Ok(model);
     };
@@ -337,6 +342,19 @@ fn with_report_reference(model: WatermarkModel, report: Option<&Path>) -> Result
     }
     let reference: Option<Vec<f32>> = serde_json::from_value(r["reference_logits"].clone())
         .with_context(|| format!("{}: reference_logits", p.display()))?;
+    let projection: Option<ViewProjection> =
+        serde_json::from_value(r["view_projection"].clone())
+            .with_context(|| format!("{}: view_projection", p.display()))?;
+    let model = match projection {
+        Some(v) if v.features() != model.decoder.feature_count() => bail!(
+            "{}: view projection over {} features, the decoder pools {}",
+            p.display(),
+            v.features(),
+            model.decoder.feature_count()
+        ),
+        Some(v) => model.with_projection(v),
+        None => model,
+    };
     Ok(match reference {
         Some(z) if z.len() != model.bits() => bail!(
             "{}: reference for {} bits, the message has {}",

@@ -331,6 +331,10 @@ struct DecodeArgs {
     images: Vec<PathBuf>,
     #[command(flatten)]
     weights: WeightsArgs,
+    /// An embedding report (`splatmark embed --report`): decode as its verification does,
+    /// relative to its asset reference and through its view projection, when it has them.
+    #[arg(long)]
+    report: Option<PathBuf>,
 }
 
 #[derive(Args, Debug)]
@@ -600,6 +604,7 @@ fn eval_cmd(a: &EvalArgs) -> Result<()> {
 
 fn decode_cmd(a: &DecodeArgs) -> Result<()> {
     let (model, device) = load_model(&a.weights)?;
+    let model = embed::with_report_reference(model, a.report.as_deref())?;
     let images = eval::read_images(&a.images)?;
     let report = eval::decode_images(&model, &images, &device);
     println!("{}", serde_json::to_string_pretty(&report)?);

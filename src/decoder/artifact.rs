@@ -32,6 +32,7 @@ use serde::{Deserialize, Serialize};
 use super::encoder::Encoder;
 use super::eval::EvalReport;
 use super::model::{HiddenDecoder, HiddenDecoderConfig, Norm, Whitening};
+use super::projection::ViewProjection;
 use super::train::{EncoderKind, LogEntry, TrainConfig};
 
 /// Sidecar format tag.
@@ -477,6 +478,9 @@ pub struct WatermarkModel {
     /// own mean logits, subtracted from every (whitened) logit vector. `None` for the plain
     /// decoder.
     pub reference: Option<Vec<f32>>,
+    /// The per-asset view projection ([`with_projection`](Self::with_projection)), applied to
+    /// the pooled features before the head. `None` for the plain decoder.
+    pub projection: Option<ViewProjection>,
 }
 
 impl WatermarkModel {
@@ -521,6 +525,7 @@ impl WatermarkModel {
             decoder: dec,
             encoder: enc,
             reference: None,
+            projection: None,
         })
     }
 
@@ -616,7 +621,10 @@ impl WatermarkModel {
     /// Decoder logits `[B, L]` as a tensor (whitened when the sidecar has a whitening); on an
     /// autodiff device gradients flow back to `images`.
     pub fn forward(&self, images: Tensor<4>) -> Tensor<2> {
-        let z = self.decoder.forward(images);
+        let z = match &self.projection {
+            Some(p) => self.decoder.head(p.apply(self.decoder.pooled(images))),
+            None => self.decoder.forward(images),
+        };
         let z = match &self.sidecar.whitening {
             Some(w) => w.apply(z),
             None => z,
@@ -644,6 +652,31 @@ impl WatermarkModel {
         assert_eq!(reference.len(), self.bits(), "one reference value per bit");
         self.reference = Some(reference);
         self
+    }
+
+    /// The model decoding through an asset's view projection ([`ViewProjection`]).
+    ///
+    /// # Panics
+    /// If the projection does not have one value per pooled feature.
+    pub fn with_projection(mut self, projection: ViewProjection) -> Self {
+        assert_eq!(
+            projection.features(),
+            self.decoder.feature_count(),
+            "one projection mean per pooled feature"
+        );
+        self.projection = Some(projection);
+        self
+    }
+
+    /// The decoder's pooled features (before any projection), one vector per image.
+    pub fn features(&self, images: Tensor<4>) -> Vec<Vec<f32>> {
+        let f = self.decoder.feature_count();
+        let flat = self
+            .decoder
+            .pooled(images)
+            .try_into_vec_as::<f32>()
+            .expect("features readable");
+        flat.chunks_exact(f).map(<[f32]>::to_vec).collect()
     }
 
     /// Raw (never whitened) logits, one vector per image.

@@ -44,6 +44,7 @@ pub mod eval;
 pub mod model;
 pub mod optrain;
 pub mod probe;
+pub mod projection;
 pub mod train;
 
 pub use dwt::{Dwt, dwt, haar_level, idwt, inverse_haar_level, ll_band, ll_size, padded_size};

@@ -344,6 +344,27 @@ impl HiddenDecoder {
 
     /// Logits `[B, L]` of an already prepared input band `[B, 3, h, w]` ([`decoder_input`]).
     pub fn forward_band(&self, band: Tensor<4>) -> Tensor<2> {
+        self.linear.forward(self.pooled_band(band))
+    }
+
+    /// The pooled features `[B, F]` the linear head reads (F = `fourier` for the colour-Fourier
+    /// decoder, the last block's channels otherwise) of RGB images `[B, 3, H, W]` in [0, 1]:
+    /// logits = [`head`](Self::head)(pooled).
+    pub fn pooled(&self, image: Tensor<4>) -> Tensor<2> {
+        self.pooled_band(decoder_input(image, self.dwt_levels))
+    }
+
+    /// Number of pooled features F.
+    pub fn feature_count(&self) -> usize {
+        self.linear.weight.dims()[0]
+    }
+
+    /// The linear head: logits `[B, L]` of pooled features `[B, F]`.
+    pub fn head(&self, pooled: Tensor<2>) -> Tensor<2> {
+        self.linear.forward(pooled)
+    }
+
+    fn pooled_band(&self, band: Tensor<4>) -> Tensor<2> {
         let mut x = if self.input_gain == 1.0 {
             band
         } else {
@@ -353,8 +374,7 @@ impl HiddenDecoder {
             let features = omega.forward(x.clone()).sin();
             let [b, f, _, _] = features.dims();
             if self.fourier_dark <= 0.0 {
-                let pooled = adaptive_avg_pool2d(features, [1, 1]).reshape([b, f]);
-                return self.linear.forward(pooled);
+                return adaptive_avg_pool2d(features, [1, 1]).reshape([b, f]);
             }
             // |v|² / τ², v = u + 1 (the band's colours in [0, 2]).
             let tau2 = (2.0 * self.fourier_dark).powi(2);
@@ -364,14 +384,13 @@ impl HiddenDecoder {
             let den = adaptive_avg_pool2d(w, [1, 1])
                 .reshape([b, 1])
                 .add_scalar(1e-6);
-            return self.linear.forward(num / den);
+            return num / den;
         }
         for layer in &self.layers {
             x = layer.forward(x);
         }
         let [b, l, _, _] = x.dims();
-        let pooled = adaptive_avg_pool2d(x, [1, 1]).reshape([b, l]);
-        self.linear.forward(pooled)
+        adaptive_avg_pool2d(x, [1, 1]).reshape([b, l])
     }
 
     /// The decoder as used during watermark finetuning: parameters need no gradient and

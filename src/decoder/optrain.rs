@@ -602,6 +602,7 @@ impl OptTrainer {
             decoder,
             encoder: None,
             reference: None,
+            projection: None,
         })
     }
 }

@@ -982,6 +982,7 @@ impl Trainer {
             decoder: net.decoder.frozen(),
             encoder: Some(net.encoder.freeze()),
             reference: None,
+            projection: None,
         }
     }
 

@@ -21,6 +21,7 @@
 //! [`prune::PruneConfig`]), with the reasons for its value in that module's docs.
 
 pub mod attribution;
+pub mod calibrate;
 pub mod experts;
 pub mod finetune;
 pub mod knn;

@@ -8,6 +8,7 @@ use std::time::Instant;
 use serde::{Deserialize, Serialize};
 
 use super::attribution::AttributionRecord;
+use super::calibrate::{ProjectionConfig, calibration_cameras, fit_projection};
 use super::finetune::{
     FinetuneConfig, FinetuneError, StepLog, View, ViewsCheck, finetune, target_views,
 };
@@ -15,6 +16,7 @@ use super::mask::MaskConfig;
 use super::sbag::Budget;
 use super::{EmbedConfig, plan};
 use crate::decoder::WatermarkModel;
+use crate::decoder::projection::ViewProjection;
 use crate::render::{RenderError, RenderOptions};
 use crate::scene::{Camera, Gaussians};
 use crate::verify::message::to_hex;
@@ -40,6 +42,9 @@ pub struct EmbedOptions {
     /// whatever resolution it likes, and the message written at one resolution is weaker at
     /// another (docs/RESULTS.md); each factor in [0.125, 8], every view at least 16 px a side.
     pub view_scales: Vec<f32>,
+    /// The per-asset view projection (eq. `viewproj`, [`crate::decoder::projection`]); rank 0
+    /// (the default) decodes without one.
+    pub projection: ProjectionConfig,
 }
 
 impl Default for EmbedOptions {
@@ -50,6 +55,7 @@ impl Default for EmbedOptions {
             no_group_mask: false,
             reference: true,
             view_scales: vec![1.0],
+            projection: ProjectionConfig::default(),
         }
     }
 }
@@ -181,6 +187,10 @@ pub struct EmbedReport {
     /// verification subtracts them ([`WatermarkModel::with_reference`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub reference_logits: Option<Vec<f32>>,
+    /// The asset's view projection when `options.projection.rank` > 0: verification decodes
+    /// through it ([`WatermarkModel::with_projection`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub view_projection: Option<ViewProjection>,
 }
 
 /// The watermarked asset and its explanation.
@@ -242,6 +252,23 @@ pub fn embed(
     let t_plan = t.elapsed().as_secs_f64();
 
     let t = Instant::now();
+    let projection = if opts.projection.rank > 0 {
+        let cams = calibration_cameras(g, cameras, &opts.projection);
+        let mut plain = model.clone();
+        plain.reference = None;
+        plain.projection = None;
+        Some(fit_projection(g, &cams, &plain, &ro, opts.projection.rank)?)
+    } else {
+        None
+    };
+    let projected;
+    let model = match &projection {
+        Some(p) => {
+            projected = model.clone().with_projection(p.clone());
+            &projected
+        }
+        None => model,
+    };
     let reference = if opts.reference {
         Some(reference_logits(g, &views, model, &ro)?)
     } else {
@@ -316,6 +343,7 @@ pub fn embed(
         },
         options: opts.clone(),
         reference_logits: reference,
+        view_projection: projection,
     };
     let _ = progress(Progress {
         phase: Phase::Done,

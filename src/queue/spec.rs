@@ -75,6 +75,24 @@ impl JobOptions {
         if embed.view_scales.len() > 4 {
             return Err("options.embed.view_scales: at most 4 factors".into());
         }
+        let ft = &embed.finetune;
+        if !(ft.wm_sharpness > 0.0 && ft.wm_sharpness <= 100.0)
+            || !(0.0..=20.0).contains(&ft.wm_margin)
+        {
+            return Err(
+                "options.embed.finetune: wm_margin must be in [0, 20] and wm_sharpness in (0, 100]"
+                    .into(),
+            );
+        }
+        if embed.projection.rank > 0 {
+            // The service's keys and /v1/verify carry the asset reference, not a projection: a
+            // job written through one would not verify (the CLI and the bench decode through it).
+            return Err(
+                "options.embed.projection: the view projection is a CLI and bench option; the \
+                 service does not verify through it"
+                    .into(),
+            );
+        }
         if embed.finetune.check_every == 0 {
             return Err("options.embed.finetune.check_every must be at least 1".into());
         }
@@ -175,6 +193,11 @@ mod tests {
             ),
             (json!({"embed": {"view_scales": [1.0, 9.0]}}), "view_scales"),
             (json!({"embed": {"view_scales": []}}), "view_scales"),
+            (json!({"embed": {"projection": {"rank": 16}}}), "projection"),
+            (
+                json!({"embed": {"finetune": {"wm_sharpness": 0.0}}}),
+                "wm_sharpness",
+            ),
         ] {
             let o: JobOptions = serde_json::from_value(v).unwrap();
             let e = o.resolve(&cfg).unwrap_err();

@@ -356,6 +356,10 @@ pub fn run(
                 seed: opts.seed,
             };
             // Decoded as a dispute would: relative to the asset when the embedding measured it.
+            let model = match &out.report.view_projection {
+                Some(p) => model.with_projection(p.clone()),
+                None => model,
+            };
             let model = match &out.report.reference_logits {
                 Some(r) => model.with_reference(r.clone()),
                 None => model,

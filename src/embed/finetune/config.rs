@@ -115,6 +115,12 @@ pub struct FinetuneConfig {
     /// donut (256², 300 steps) the training views then decoded 87 % of the bits one by one
     /// while their average decoded 97 %.
     pub per_view_loss: bool,
+    /// Margin M (in logits) of the watermark loss: each bit of each view pays
+    /// softplus(β·(M − m·z)) / β (m = ±1 its sign, β = `wm_sharpness`), so bits already past
+    /// M stop drawing on the fidelity budget. (0, 1) is the BCE (the default).
+    pub wm_margin: f32,
+    /// β of `wm_margin`; > 0.
+    pub wm_sharpness: f32,
     pub lr: LearningRates,
     /// Multiplier of every learning rate on the watermark route: the carriers' rates when
     /// decoupled, every Gaussian's when `coupled` (all of them carry the watermark then).
@@ -191,6 +197,8 @@ impl Default for FinetuneConfig {
             check_every: 25,
             views_per_step: 4,
             per_view_loss: true,
+            wm_margin: 0.0,
+            wm_sharpness: 1.0,
             lr: LearningRates::default(),
             wm_lr_scale: 4.0,
             weights: LossWeights::default(),

@@ -6,19 +6,40 @@ use crate::attack::diff::{gaussian_blur, straight_through_round};
 use crate::decoder::dwt::dwt;
 use crate::decoder::train::bce_with_logits;
 
-/// The watermark BCE of a step's views `[1, L]` logits each: of their average (eq.
+/// The watermark loss of a step's views (`[1, L]` logits each): the BCE of their average (eq.
 /// `avglogits`), or, `per_view`, the average of each view's own BCE — which a view that decodes
 /// wrong cannot hide behind views that decode right.
 ///
+/// With a [`Margin`] `(M, β)` each logit z of a bit with sign m = ±1 pays
+/// softplus(β·(M − m·z)) / β instead of BCE = softplus(−m·z): a bit past the margin costs
+/// (almost) nothing, so the fidelity budget goes to the bits and views still short of it.
+/// (M, β) = (0, 1) is the BCE.
+///
 /// # Panics
 /// If `views` is empty.
-pub(super) fn views_bce(views: &[Tensor<2>], bits: &Tensor<2>, per_view: bool) -> Tensor<1> {
+pub(super) fn views_bce(
+    views: &[Tensor<2>],
+    bits: &Tensor<2>,
+    per_view: bool,
+    margin: Margin,
+) -> Tensor<1> {
     let n = views.len() as f64;
     assert!(!views.is_empty(), "a step has views");
+    let loss = |z: Tensor<2>| -> Tensor<1> {
+        if margin.is_bce() {
+            return bce_with_logits(z, bits.clone());
+        }
+        // z' = β·(z − M·m), m = 2b − 1: BCE(z', b) / β = softplus(β(M − m·z)) / β.
+        let m = bits.clone().mul_scalar(2.0).sub_scalar(1.0);
+        let shifted = z
+            .sub(m.mul_scalar(margin.margin))
+            .mul_scalar(margin.sharpness);
+        bce_with_logits(shifted, bits.clone()).div_scalar(margin.sharpness)
+    };
     if per_view {
         views
             .iter()
-            .map(|z| bce_with_logits(z.clone(), bits.clone()))
+            .map(|z| loss(z.clone()))
             .reduce(|a, b| a.add(b))
             .expect("views")
             .div_scalar(n)
@@ -29,7 +50,25 @@ pub(super) fn views_bce(views: &[Tensor<2>], bits: &Tensor<2>, per_view: bool) -
             .reduce(|a, b| a.add(b))
             .expect("views")
             .div_scalar(n);
-        bce_with_logits(mean, bits.clone())
+        loss(mean)
+    }
+}
+
+/// The margin of the watermark loss ([`views_bce`]): `margin` M in logits, `sharpness` β.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(super) struct Margin {
+    pub margin: f32,
+    pub sharpness: f32,
+}
+
+impl Margin {
+    pub(super) const BCE: Self = Self {
+        margin: 0.0,
+        sharpness: 1.0,
+    };
+
+    fn is_bce(self) -> bool {
+        self == Self::BCE
     }
 }
 
@@ -115,8 +154,8 @@ mod tests {
         // Two views of bit 1: one confidently right (+3), one wrong (−1). Their average (+1)
         // decodes right, so the averaged BCE is small; the per-view BCE keeps the wrong view.
         let views = [t(&[3.0], &device), t(&[-1.0], &device)];
-        let avg = views_bce(&views, &bits, false).into_scalar::<f32>();
-        let per = views_bce(&views, &bits, true).into_scalar::<f32>();
+        let avg = views_bce(&views, &bits, false, Margin::BCE).into_scalar::<f32>();
+        let per = views_bce(&views, &bits, true, Margin::BCE).into_scalar::<f32>();
         let softplus = |x: f32| (1.0 + x.exp()).ln();
         assert!((avg - softplus(-1.0)).abs() < 1e-5, "{avg}");
         assert!(
@@ -127,9 +166,42 @@ mod tests {
         // One view: the same loss either way.
         let one = [t(&[0.4], &device)];
         let (a, b) = (
-            views_bce(&one, &bits, false).into_scalar::<f32>(),
-            views_bce(&one, &bits, true).into_scalar::<f32>(),
+            views_bce(&one, &bits, false, Margin::BCE).into_scalar::<f32>(),
+            views_bce(&one, &bits, true, Margin::BCE).into_scalar::<f32>(),
         );
         assert!((a - b).abs() < 1e-6);
+    }
+
+    #[test]
+    fn a_bit_past_the_margin_costs_nothing_and_one_short_of_it_costs_its_shortfall() {
+        let device = Device::flex();
+        // Bits 1 and 0; logits that decode both right, the first far past the margin.
+        let bits = t(&[1.0, 0.0], &device);
+        let m = Margin {
+            margin: 2.0,
+            sharpness: 8.0,
+        };
+        let far = views_bce(&[t(&[6.0, -6.0], &device)], &bits, true, m).into_scalar::<f32>();
+        assert!(far < 1e-6, "{far}");
+        // Right but short of the margin by 1.5 on the 0 bit: ≈ 1.5 / 2 (the mean over bits).
+        let short = views_bce(&[t(&[6.0, -0.5], &device)], &bits, true, m).into_scalar::<f32>();
+        assert!((short - 0.75).abs() < 0.01, "{short}");
+        // Negative logits of a 0 bit count as right, as the BCE's do.
+        let wrong = views_bce(&[t(&[6.0, 0.5], &device)], &bits, true, m).into_scalar::<f32>();
+        assert!(wrong > short);
+        // (0, 1) is exactly the BCE.
+        let z = [t(&[0.3, 0.7], &device)];
+        let a = views_bce(&z, &bits, true, Margin::BCE).into_scalar::<f32>();
+        let b = views_bce(
+            &z,
+            &bits,
+            true,
+            Margin {
+                margin: 0.0,
+                sharpness: 1.0 + 1e-7,
+            },
+        )
+        .into_scalar::<f32>();
+        assert!((a - b).abs() < 1e-5, "{a} vs {b}");
     }
 }

@@ -59,7 +59,7 @@ mod tests;
 
 pub use config::{FinetuneConfig, LearningRates, LossWeights, StepRule};
 pub use losses::ssim;
-use losses::{as_saved, band_l1, from_planar, to_tensor, views_bce};
+use losses::{Margin, as_saved, band_l1, from_planar, to_tensor, views_bce};
 pub use optim::ROUTE_CLIP;
 use optim::{Adam, RouteMomentum};
 
@@ -86,6 +86,8 @@ pub enum FinetuneError {
     Diverged(f32, usize),
     #[error("cancelled after step {step}")]
     Cancelled { step: usize },
+    #[error("invalid finetuning options: {0}")]
+    Invalid(String),
 }
 
 /// A training view: camera and the original scene's render through it.
@@ -316,6 +318,14 @@ pub fn finetune(
     if views.is_empty() {
         return Err(FinetuneError::NoViews);
     }
+    if !(cfg.wm_sharpness > 0.0 && cfg.wm_sharpness <= 100.0)
+        || !(0.0..=20.0).contains(&cfg.wm_margin)
+    {
+        return Err(FinetuneError::Invalid(format!(
+            "wm_margin must be in [0, 20] and wm_sharpness in (0, 100], got {} and {}",
+            cfg.wm_margin, cfg.wm_sharpness
+        )));
+    }
     for (index, v) in views.iter().enumerate() {
         let expected = (v.camera.width * v.camera.height) as usize;
         if v.target.len() != expected {
@@ -437,8 +447,12 @@ pub fn finetune(
             let b = band_l1(x.clone(), t.clone(), cfg.dwt_levels, true);
             low = Some(low.map_or(b.clone(), |a| a.add(b)));
         }
-        let bce_cl = views_bce(&z_cl, &bits, cfg.per_view_loss);
-        let bce_t = views_bce(&z_t, &bits, cfg.per_view_loss);
+        let margin = Margin {
+            margin: cfg.wm_margin,
+            sharpness: cfg.wm_sharpness,
+        };
+        let bce_cl = views_bce(&z_cl, &bits, cfg.per_view_loss, margin);
+        let bce_t = views_bce(&z_t, &bits, cfg.per_view_loss, margin);
         let mean = |zs: Vec<Tensor<2>>| {
             zs.into_iter()
                 .reduce(|a, b| a.add(b))

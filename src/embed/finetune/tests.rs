@@ -35,6 +35,7 @@ fn model(bits: usize) -> WatermarkModel {
         decoder,
         encoder: None,
         reference: None,
+        projection: None,
     }
 }
 
