@@ -76,8 +76,9 @@ impl JobOptions {
             return Err("options.embed.view_scales: at most 4 factors".into());
         }
         let ft = &embed.finetune;
-        if !(ft.wm_sharpness > 0.0 && ft.wm_sharpness <= 100.0)
-            || !(0.0..=20.0).contains(&ft.wm_margin)
+        if !(ft.wm_sharpness > 0.0
+            && ft.wm_sharpness <= 100.0
+            && (0.0..=20.0).contains(&ft.wm_margin))
         {
             return Err(
                 "options.embed.finetune: wm_margin must be in [0, 20] and wm_sharpness in (0, 100]"

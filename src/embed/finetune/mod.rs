@@ -318,8 +318,9 @@ pub fn finetune(
     if views.is_empty() {
         return Err(FinetuneError::NoViews);
     }
-    if !(cfg.wm_sharpness > 0.0 && cfg.wm_sharpness <= 100.0)
-        || !(0.0..=20.0).contains(&cfg.wm_margin)
+    if !(cfg.wm_sharpness > 0.0
+        && cfg.wm_sharpness <= 100.0
+        && (0.0..=20.0).contains(&cfg.wm_margin))
     {
         return Err(FinetuneError::Invalid(format!(
             "wm_margin must be in [0, 20] and wm_sharpness in (0, 100], got {} and {}",
