@@ -13,7 +13,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::attack::diff::EotRng;
 use crate::decoder::WatermarkModel;
-use crate::decoder::artifact::rgb8_batch;
+use crate::decoder::artifact::rgb8_tensor;
 use crate::decoder::projection::ViewProjection;
 use crate::render::{self, RenderOptions};
 use crate::scene::bounds::robust_bounds;
@@ -101,23 +101,27 @@ pub fn fit_projection(
     opts: &RenderOptions,
     rank: usize,
 ) -> Result<ViewProjection, EmbedError> {
-    let device = burn::tensor::Device::flex();
-    let mut features = Vec::with_capacity(cameras.len());
-    for chunk in cameras.chunks(8) {
-        let images = chunk
-            .iter()
-            .map(|c| {
-                let r = render::render(original, c, opts)?;
-                Ok(render::to_rgb8(r.width, r.height, &r.image))
-            })
-            .collect::<Result<Vec<_>, render::RenderError>>()?;
-        // One batch per image size (a chunk may mix resolutions).
-        for img in &images {
-            features.extend(model.features(rgb8_batch(std::slice::from_ref(img), &device)));
-        }
-    }
+    let features = original_features(original, cameras, model, opts)?;
     ViewProjection::fit(&features, rank, model.bits())
         .map_err(|e| EmbedError::Invalid(e.to_string()))
+}
+
+/// `model`'s pooled features of `original` through each camera, rendered to 8 bits as a dispute
+/// decodes them.
+fn original_features(
+    original: &Gaussians,
+    cameras: &[Camera],
+    model: &WatermarkModel,
+    opts: &RenderOptions,
+) -> Result<Vec<Vec<f32>>, render::RenderError> {
+    let device = burn::tensor::Device::flex();
+    let mut features = Vec::with_capacity(cameras.len());
+    for c in cameras {
+        let r = render::render(original, c, opts)?;
+        let img = render::to_rgb8(r.width, r.height, &r.image);
+        features.extend(model.features(rgb8_tensor(&img, &device)));
+    }
+    Ok(features)
 }
 
 #[cfg(test)]
@@ -195,7 +199,7 @@ mod tests {
                 .flat_map(|c| {
                     let r = render::render(&g, c, &opts).unwrap();
                     let img = render::to_rgb8(r.width, r.height, &r.image);
-                    m.logits(rgb8_batch(std::slice::from_ref(&img), &device))
+                    m.logits(rgb8_tensor(&img, &device))
                 })
                 .collect();
             let n = z.len() as f64;
@@ -242,15 +246,7 @@ mod measure {
         let device = burn::tensor::Device::flex();
         let model = WatermarkModel::shipped(32, &device).unwrap();
         let ro = RenderOptions::default();
-        let feats = |cams: &[Camera]| -> Vec<Vec<f32>> {
-            cams.iter()
-                .flat_map(|c| {
-                    let r = render::render(&g, c, &ro).unwrap();
-                    let img = render::to_rgb8(r.width, r.height, &r.image);
-                    model.features(rgb8_batch(std::slice::from_ref(&img), &device))
-                })
-                .collect()
-        };
+        let feats = |cams: &[Camera]| original_features(&g, cams, &model, &ro).unwrap();
         let cal = feats(&calibration_cameras(
             &g,
             &train,
