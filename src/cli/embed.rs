@@ -111,6 +111,12 @@ pub(crate) struct EmbedArgs {
     /// (`reference_logits`): pass the report to `splatmark verify --report` / `eval --report`.
     #[arg(long)]
     no_reference: bool,
+    /// Read the bits through the decoder's own head instead of the asset's matched head. By
+    /// default the embedding fits a matched head on the original (eq. `matchedhead`) and
+    /// writes it to the report (`view_projection`): pass the report to `verify --report` /
+    /// `eval --report`.
+    #[arg(long)]
+    no_matched_head: bool,
     /// The paper's recipe instead of the default one: decoupled routes (carriers take the
     /// watermark loss, compensators the visual loss, channel masks), INRIA's learning rates on
     /// every channel, 2 views per step, plain decoding. --no-sbag and --no-group-mask are its
@@ -198,6 +204,7 @@ pub(crate) fn embed_cmd(a: &EmbedArgs) -> Result<()> {
     };
     opts.no_group_mask |= a.no_group_mask;
     opts.reference &= !a.no_reference;
+    opts.projection.matched &= !a.no_matched_head;
     if let Some(b) = &a.background {
         opts.finetune.background = background(b)?;
     }

@@ -621,13 +621,18 @@ impl WatermarkModel {
     /// Decoder logits `[B, L]` as a tensor (whitened when the sidecar has a whitening); on an
     /// autodiff device gradients flow back to `images`.
     pub fn forward(&self, images: Tensor<4>) -> Tensor<2> {
+        self.forward_pooled(self.decoder.pooled(images))
+    }
+
+    /// [`forward`](Self::forward) from the decoder's pooled features `[B, F]`
+    /// ([`features`](Self::features)): through the projection or matched head, the whitening
+    /// and the reference.
+    pub fn forward_pooled(&self, pooled: Tensor<2>) -> Tensor<2> {
         let z = match &self.projection {
-            Some(p) => self.decoder.head(p.apply(self.decoder.pooled(images))),
-            None => self.decoder.forward(images),
-        };
-        let z = match &self.sidecar.whitening {
-            Some(w) => w.apply(z),
-            None => z,
+            // The matched head replaces the decoder's head and its whitening.
+            Some(p) if p.head.is_some() => p.matched_logits(pooled),
+            Some(p) => self.whiten(self.decoder.head(p.apply(pooled))),
+            None => self.whiten(self.decoder.head(pooled)),
         };
         match &self.reference {
             Some(r) => {
@@ -635,6 +640,13 @@ impl WatermarkModel {
                 let r = Tensor::<2>::from_data(TensorData::new(r.clone(), [1, r.len()]), &device);
                 z.sub(r)
             }
+            None => z,
+        }
+    }
+
+    fn whiten(&self, z: Tensor<2>) -> Tensor<2> {
+        match &self.sidecar.whitening {
+            Some(w) => w.apply(z),
             None => z,
         }
     }
@@ -654,15 +666,23 @@ impl WatermarkModel {
         self
     }
 
-    /// The model decoding through an asset's view projection ([`ViewProjection`]).
+    /// The model decoding through an asset's view projection ([`ViewProjection`]), or its
+    /// matched head when the projection carries one.
     ///
     /// # Panics
-    /// If the projection does not have one value per pooled feature.
+    /// If the projection does not have one value per pooled feature, or its matched head
+    /// another number of bits.
     pub fn with_projection(mut self, projection: ViewProjection) -> Self {
         assert_eq!(
             projection.features(),
             self.decoder.feature_count(),
             "one projection mean per pooled feature"
+        );
+        assert!(
+            projection.head.is_none() || projection.head_bits() == self.bits(),
+            "a matched head for {} bits, the model reads {}",
+            projection.head_bits(),
+            self.bits()
         );
         self.projection = Some(projection);
         self

@@ -8,7 +8,7 @@ use std::time::Instant;
 use serde::{Deserialize, Serialize};
 
 use super::attribution::AttributionRecord;
-use super::calibrate::{ProjectionConfig, calibration_cameras, fit_projection};
+use super::calibrate::{ProjectionConfig, fit_projection};
 use super::finetune::{
     FinetuneConfig, FinetuneError, StepLog, View, ViewsCheck, finetune, target_views,
 };
@@ -42,8 +42,10 @@ pub struct EmbedOptions {
     /// whatever resolution it likes, and the message written at one resolution is weaker at
     /// another (docs/RESULTS.md); each factor in [0.125, 8], every view at least 16 px a side.
     pub view_scales: Vec<f32>,
-    /// The per-asset view projection (eq. `viewproj`, [`crate::decoder::projection`]); rank 0
-    /// (the default) decodes without one.
+    /// How the bits are read for this asset (eq. `matchedhead`, [`crate::decoder::projection`]):
+    /// by default through the asset's matched head, fitted on the original before finetuning
+    /// and reported (`view_projection`); `matched: false` with `rank` k > 0 is the rank-k view
+    /// projection (eq. `viewproj`), with rank 0 the decoder's own head.
     pub projection: ProjectionConfig,
 }
 
@@ -105,6 +107,10 @@ impl EmbedOptions {
         Self {
             finetune: FinetuneConfig::paper(),
             reference: false,
+            projection: ProjectionConfig {
+                matched: false,
+                ..ProjectionConfig::default()
+            },
             ..Self::default()
         }
     }
@@ -187,8 +193,9 @@ pub struct EmbedReport {
     /// verification subtracts them ([`WatermarkModel::with_reference`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub reference_logits: Option<Vec<f32>>,
-    /// The asset's view projection when `options.projection.rank` > 0: verification decodes
-    /// through it ([`WatermarkModel::with_projection`]).
+    /// The asset's matched head (the default, `options.projection.matched`) or rank-k view
+    /// projection: verification decodes through it ([`WatermarkModel::with_projection`]); the
+    /// service registers a matched head with the key.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub view_projection: Option<ViewProjection>,
 }
@@ -252,12 +259,11 @@ pub fn embed(
     let t_plan = t.elapsed().as_secs_f64();
 
     let t = Instant::now();
-    let projection = if opts.projection.rank > 0 {
-        let cams = calibration_cameras(g, cameras, &opts.projection);
+    let projection = if opts.projection.is_on() {
         let mut plain = model.clone();
         plain.reference = None;
         plain.projection = None;
-        Some(fit_projection(g, &cams, &plain, &ro, opts.projection.rank)?)
+        Some(fit_projection(g, cameras, &plain, &ro, &opts.projection)?)
     } else {
         None
     };
