@@ -561,10 +561,15 @@ pub fn finetune(
         // Gate and step.
         let lr = &cfg.lr;
         let base = [lr.means, lr.dc, lr.rest, lr.opacity, lr.rotation, lr.scale];
+        let t = (step.min(cfg.steps) as f32 / cfg.steps.max(1) as f32).min(1.0);
+        let decay = cfg.wm_lr_min_fraction
+            + (1.0 - cfg.wm_lr_min_fraction) * 0.5 * (1.0 + (std::f32::consts::PI * t).cos());
+        let wm_s = cfg.wm_lr_scale * decay;
         if cfg.coupled {
-            // Coupled: every Gaussian is on the watermark route, so every rate is scaled.
+            // Coupled: every Gaussian is on the watermark route, so every rate is scaled and
+            // decays with the route's.
             add_into(&mut grad_wm, &grad_vis);
-            let scaled = base.map(|b| b * cfg.wm_lr_scale);
+            let scaled = base.map(|b| b * wm_s);
             adam.step(&mut g, &grad_wm, |_| scaled);
         } else {
             let mut routed = grad_vis;
@@ -584,10 +589,6 @@ pub fn finetune(
                     base[5] * m[4] * s,
                 ]
             };
-            let t = (step.min(cfg.steps) as f32 / cfg.steps.max(1) as f32).min(1.0);
-            let decay = cfg.wm_lr_min_fraction
-                + (1.0 - cfg.wm_lr_min_fraction) * 0.5 * (1.0 + (std::f32::consts::PI * t).cos());
-            let wm_s = cfg.wm_lr_scale * decay;
             let wm_rates = |i: usize| {
                 let mut r = rates(i, wm_s);
                 if !cfg.wm_geometry {
