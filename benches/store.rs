@@ -111,6 +111,7 @@ async fn run(n: u32) -> Result<(), Box<dyn std::error::Error>> {
             asset,
             &claimed.key,
             None,
+            None,
             &recs,
             serde_json::json!({ "bench": true }),
             AuditEntry::new("bench", "watermark.publish"),

@@ -856,6 +856,7 @@ async fn a_result_is_published_once_when_a_worker_dies_mid_job() {
             },
             &dead.key,
             None,
+            None,
             &[],
             json!({}),
             splatmark::store::AuditEntry {

@@ -453,6 +453,11 @@ pub struct DecodeReport {
     pub images: usize,
     /// Bits decoded from each image alone, in the order given.
     pub per_image: Vec<String>,
+    /// The decoder's pooled features averaged over the images (what an asset's matched head
+    /// reads, [`crate::decoder::projection::ViewProjection::matched_logits_of`]); empty when
+    /// combined from logits alone.
+    #[serde(skip)]
+    pub features: Vec<f32>,
 }
 
 /// `'0'`/`'1'` string of `logit > 0`.
@@ -470,11 +475,28 @@ pub fn bit_string(logits: &[f32]) -> String {
 /// If `images` is empty.
 pub fn decode_images(model: &WatermarkModel, images: &[RgbImage], device: &Device) -> DecodeReport {
     assert!(!images.is_empty(), "no images to decode");
-    let per: Vec<Vec<f32>> = images
-        .iter()
-        .flat_map(|img| model.logits(rgb8_tensor(img, device)))
-        .collect();
-    combine_logits(&per)
+    let f = model.decoder.feature_count();
+    let mut features = vec![0.0f64; f];
+    let mut per: Vec<Vec<f32>> = Vec::with_capacity(images.len());
+    for img in images {
+        let pooled = model.decoder.pooled(rgb8_tensor(img, device));
+        let p: Vec<f32> = pooled
+            .clone()
+            .try_into_vec_as::<f32>()
+            .expect("features readable");
+        for (a, &x) in features.iter_mut().zip(&p) {
+            *a += f64::from(x);
+        }
+        let z: Vec<f32> = model
+            .forward_pooled(pooled)
+            .try_into_vec_as::<f32>()
+            .expect("logits readable");
+        per.push(z);
+    }
+    let mut report = combine_logits(&per);
+    let n = images.len() as f64;
+    report.features = features.iter().map(|&a| (a / n) as f32).collect();
+    report
 }
 
 /// Averages per-image logits into one [`DecodeReport`].
@@ -499,6 +521,7 @@ pub fn combine_logits(per_image: &[Vec<f32>]) -> DecodeReport {
         confidence,
         images: n,
         per_image: per_image.iter().map(|z| bit_string(z)).collect(),
+        features: Vec::new(),
     }
 }
 

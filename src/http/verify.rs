@@ -1,8 +1,9 @@
 //! `POST /v1/verify` — a dispute: rendered images (PNG/JPEG, multipart field `image`, repeated)
-//! and optionally `asset_id`. The images are decoded once per message length (logits averaged
-//! over the images) and tested against the asset's message — or, without an asset id, against
-//! every registered message — each read relative to its asset reference when the job registered
-//! one, with p-values corrected for the number of candidates.
+//! and optionally `asset_id`. The images are decoded once per message length (logits and pooled
+//! features averaged over the images) and tested against the asset's message — or, without an
+//! asset id, against every registered message — each read through its asset's matched head and
+//! relative to its asset reference when the job registered them, with p-values corrected for the
+//! number of candidates.
 
 use std::collections::BTreeMap;
 use std::sync::atomic::Ordering;
@@ -20,7 +21,7 @@ use super::auth::Caller;
 use super::error::{ApiError, ApiResult};
 use crate::decoder::eval::decode_images;
 use crate::store::{AssetKind, AuditEntry, NewVerification, Registration, Scope};
-use crate::verify::dispute::{Candidate, decoded_hex, judge};
+use crate::verify::dispute::{Candidate, Decoded, decoded_hex, judge};
 
 /// Largest image file accepted for verification.
 const MAX_IMAGE_BYTES: usize = 64 << 20;
@@ -97,12 +98,14 @@ fn decode_image(bytes: &[u8], i: usize, max_side: u32) -> ApiResult<image::RgbIm
     Ok(img)
 }
 
-/// What the images are tested against for a registration: its payload and reference.
+/// What the images are tested against for a registration: its payload, matched head and
+/// reference.
 fn candidate(r: Registration) -> Candidate {
     Candidate {
         asset_id: r.asset_id,
         payload: r.key.payload(),
         reference: r.reference,
+        head: r.head,
     }
 }
 
@@ -242,7 +245,13 @@ pub async fn verify(
                 n,
                 json!({"confidence": r.confidence, "per_image": r.per_image}),
             );
-            out.insert(n, r.logits);
+            out.insert(
+                n,
+                Decoded {
+                    logits: r.logits,
+                    features: r.features,
+                },
+            );
         }
         Ok::<_, ApiError>((out, logits))
     })

@@ -38,6 +38,8 @@ pub struct JobOutput {
     pub report: serde_json::Value,
     /// The asset reference the dispute subtracts (`embed.reference`), one logit per bit.
     pub reference: Option<Vec<f32>>,
+    /// The matched head the dispute reads the bits through (`embed.projection.matched`).
+    pub head: Option<crate::decoder::projection::ViewProjection>,
     pub train_views: usize,
     pub held_out_views: usize,
 }
@@ -105,6 +107,11 @@ pub fn execute(
         records: e.records,
         report,
         reference: e.report.reference_logits.clone(),
+        head: e
+            .report
+            .view_projection
+            .clone()
+            .filter(|p| p.head.is_some()),
         train_views: train.len(),
         held_out_views: held.len(),
     })

@@ -85,12 +85,28 @@ impl JobOptions {
                     .into(),
             );
         }
-        if embed.projection.rank > 0 {
-            // The service's keys and /v1/verify carry the asset reference, not a projection: a
-            // job written through one would not verify (the CLI and the bench decode through it).
+        let pr = &embed.projection;
+        if pr.rank > 0 && !pr.matched {
+            // The service's keys and /v1/verify carry the asset reference and a matched head,
+            // not a rank-k projection: a job written through one would not verify (the CLI and
+            // the bench decode through it).
             return Err(
-                "options.embed.projection: the view projection is a CLI and bench option; the \
-                 service does not verify through it"
+                "options.embed.projection.rank: the rank-k view projection is a CLI and bench \
+                 option; the service verifies through a matched head (projection.matched) only"
+                    .into(),
+            );
+        }
+        if pr.matched
+            && !(pr.lambda.is_finite()
+                && (1e-6..=1e3).contains(&pr.lambda)
+                && pr.views <= 1000
+                && pr.nuisance <= 1000
+                && pr.max_angle_deg.is_finite()
+                && pr.zoom.is_finite())
+        {
+            return Err(
+                "options.embed.projection: lambda must be in [1e-6, 1000], views and nuisance \
+                 at most 1000, angles and zoom finite"
                     .into(),
             );
         }
@@ -194,7 +210,14 @@ mod tests {
             ),
             (json!({"embed": {"view_scales": [1.0, 9.0]}}), "view_scales"),
             (json!({"embed": {"view_scales": []}}), "view_scales"),
-            (json!({"embed": {"projection": {"rank": 16}}}), "projection"),
+            (
+                json!({"embed": {"projection": {"rank": 16, "matched": false}}}),
+                "projection.rank",
+            ),
+            (
+                json!({"embed": {"projection": {"lambda": -1.0}}}),
+                "projection",
+            ),
             (
                 json!({"embed": {"finetune": {"wm_sharpness": 0.0}}}),
                 "wm_sharpness",

@@ -401,6 +401,7 @@ async fn run_job(ctx: &Ctx, w: &WorkerSpec, c: Claimed) {
             new,
             &c.key,
             out.reference.as_deref(),
+            out.head.as_ref(),
             &out.records,
             out.report,
             audit,

@@ -18,10 +18,17 @@
 //! before reading bits. They are computed from the unmarked original, so they are independent of
 //! the mask and the Binomial(n, ½) argument above still holds. Sealed too (AAD
 //! `<asset id>/reference`), so that they cannot be changed unnoticed.
+//!
+//! # The matched head
+//! A job whose embedding read the bits through a matched head (`embed.projection.matched`, eq.
+//! `matchedhead`) registers it ([`Registration::head`]); a dispute reads the candidate's bits
+//! through it. Fitted on the unmarked original alone, so the argument above holds for it too.
+//! Sealed as JSON (AAD `<asset id>/head`).
 
 use super::crypto::Sealed;
 use super::error::{Result, StoreError};
 use super::{Store, parse_uuid, time};
+use crate::decoder::projection::ViewProjection;
 use crate::verify::message::random_message;
 use sqlx::Row;
 use sqlx::sqlite::{SqliteConnection, SqliteRow};
@@ -84,6 +91,32 @@ pub struct Registration {
     pub key: WatermarkKey,
     /// The asset reference (one logit per bit), when the job decoded relative to the asset.
     pub reference: Option<Vec<f32>>,
+    /// The asset's matched head, when the job read the bits through one.
+    pub head: Option<ViewProjection>,
+}
+
+/// The associated data of a matched head sealed for asset `id`.
+fn head_aad(id: &str) -> String {
+    format!("{id}/head")
+}
+
+/// A matched head must read `bits` bits from finite values.
+pub(crate) fn validate_head(head: &ViewProjection, bits: usize) -> Result<()> {
+    let finite = |v: &[f32]| v.iter().all(|x| x.is_finite());
+    match &head.head {
+        Some(a) if head.head_bits() == bits && a.len() == bits * head.features() => {}
+        _ => {
+            return Err(StoreError::invalid(format!(
+                "the matched head does not read {bits} bits"
+            )));
+        }
+    }
+    if !finite(&head.mean) || !head.head.as_deref().is_some_and(finite) {
+        return Err(StoreError::invalid(
+            "the matched head holds a non-finite value",
+        ));
+    }
+    Ok(())
 }
 
 /// The associated data of a reference sealed for asset `id`.
@@ -191,10 +224,24 @@ impl Store {
             }
             _ => return Err(StoreError::Crypto),
         };
+        let nonce: Option<Vec<u8>> = r.try_get("head_nonce")?;
+        let ct: Option<Vec<u8>> = r.try_get("head_ct")?;
+        let head = match (nonce, ct) {
+            (None, None) => None,
+            (Some(n), Some(c)) => {
+                let bytes = self.cipher().open(&n, &c, head_aad(&id).as_bytes())?;
+                let head: ViewProjection =
+                    serde_json::from_slice(&bytes).map_err(|_| StoreError::Crypto)?;
+                validate_head(&head, key.bits()).map_err(|_| StoreError::Crypto)?;
+                Some(head)
+            }
+            _ => return Err(StoreError::Crypto),
+        };
         Ok(Registration {
             asset_id: parse_uuid(&id)?,
             key,
             reference,
+            head,
         })
     }
 
@@ -203,7 +250,7 @@ impl Store {
     pub async fn registration(&self, asset: Uuid) -> Result<Option<Registration>> {
         let row = sqlx::query(
             "SELECT asset_id, nonce, ciphertext, mask_nonce, mask_ct, reference_nonce, \
-             reference_ct FROM keys WHERE asset_id = ?",
+             reference_ct, head_nonce, head_ct FROM keys WHERE asset_id = ?",
         )
         .bind(asset.to_string())
         .fetch_optional(&self.pool)
@@ -215,7 +262,7 @@ impl Store {
     pub async fn registrations(&self) -> Result<Vec<Registration>> {
         let rows = sqlx::query(
             "SELECT asset_id, nonce, ciphertext, mask_nonce, mask_ct, reference_nonce, \
-             reference_ct FROM keys ORDER BY created_at, asset_id",
+             reference_ct, head_nonce, head_ct FROM keys ORDER BY created_at, asset_id",
         )
         .fetch_all(&self.pool)
         .await?;
@@ -238,14 +285,15 @@ impl Store {
             .collect())
     }
 
-    /// Seals and inserts the key of `asset` and its reference, if any, on `conn` (inside the
-    /// caller's transaction).
+    /// Seals and inserts the key of `asset`, its reference and its matched head, if any, on
+    /// `conn` (inside the caller's transaction).
     pub(crate) async fn insert_key_in(
         &self,
         conn: &mut SqliteConnection,
         asset: Uuid,
         key: &WatermarkKey,
         reference: Option<&[f32]>,
+        head: Option<&ViewProjection>,
     ) -> Result<()> {
         let id = asset.to_string();
         let sealed = self.seal_key(key, &id)?;
@@ -261,9 +309,19 @@ impl Store {
             Some(s) => (Some(s.nonce), Some(s.ciphertext)),
             None => (None, None),
         };
+        let (head_nonce, head_ct) = match head {
+            None => (None, None),
+            Some(h) => {
+                validate_head(h, key.bits())?;
+                let json = serde_json::to_vec(h).expect("a projection serialises");
+                let s = self.cipher().seal(&json, head_aad(&id).as_bytes())?;
+                (Some(s.nonce), Some(s.ciphertext))
+            }
+        };
         sqlx::query(
             "INSERT INTO keys (asset_id, bits, nonce, ciphertext, mask_nonce, mask_ct, \
-             reference_nonce, reference_ct, created_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+             reference_nonce, reference_ct, head_nonce, head_ct, created_at) \
+             VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
         )
         .bind(&id)
         .bind(key.bits() as i64)
@@ -273,6 +331,8 @@ impl Store {
         .bind(sealed.mask.ciphertext)
         .bind(reference_nonce)
         .bind(reference_ct)
+        .bind(head_nonce)
+        .bind(head_ct)
         .bind(time::now())
         .execute(&mut *conn)
         .await
@@ -313,6 +373,7 @@ impl Store {
                     ("nonce", "ciphertext", |id| id.to_string()),
                     ("mask_nonce", "mask_ct", |id| mask_aad(id)),
                     ("reference_nonce", "reference_ct", |id| reference_aad(id)),
+                    ("head_nonce", "head_ct", |id| head_aad(id)),
                 ],
             ),
             (

@@ -202,6 +202,7 @@ async fn publish(
             asset,
             &c.key,
             None,
+            None,
             recs,
             serde_json::json!({ "psnr": 41.5 }),
             entry("watermark.publish"),
@@ -593,6 +594,7 @@ async fn an_asset_reference_is_registered_sealed_and_checked() {
                     watermarked(store, a.id, 10, b"w"),
                     &c.key,
                     Some(&reference),
+                    None,
                     &records(10),
                     serde_json::Value::Null,
                     entry("watermark.publish"),
@@ -656,6 +658,89 @@ async fn an_asset_reference_is_registered_sealed_and_checked() {
     assert_eq!(reg.reference, None);
 }
 
+/// A matched head over 4 pooled features for `bits` bits.
+fn test_head(bits: usize) -> crate::decoder::projection::ViewProjection {
+    crate::decoder::projection::ViewProjection {
+        mean: vec![0.1, 0.2, 0.3, 0.4],
+        basis: Vec::new(),
+        explained: 0.0,
+        head: Some((0..4 * bits).map(|i| (i % 7) as f32 - 3.0).collect()),
+    }
+}
+
+#[tokio::test]
+async fn a_matched_head_is_registered_sealed_and_checked() {
+    let (dir, store) = setup().await;
+    let a = original(&store).await;
+    enqueue(&store, a.id, 3).await;
+    let c = store.claim("w1", LONG).await.expect("claim").expect("job");
+    let bits = c.key.bits();
+    let publish_with = |head: crate::decoder::projection::ViewProjection| {
+        let store = &store;
+        let c = &c;
+        async move {
+            store
+                .publish_result(
+                    c.job.id,
+                    c.lease_token,
+                    watermarked(store, a.id, 10, b"w"),
+                    &c.key,
+                    None,
+                    Some(&head),
+                    &records(10),
+                    serde_json::Value::Null,
+                    entry("watermark.publish"),
+                )
+                .await
+        }
+    };
+    // A head for another length, a projection without a head, a non-finite value: nothing is
+    // written and the job keeps running.
+    let mut nan = test_head(bits);
+    nan.mean[2] = f32::NAN;
+    for bad in [
+        test_head(bits + 1),
+        crate::decoder::projection::ViewProjection {
+            head: None,
+            ..test_head(bits)
+        },
+        nan,
+    ] {
+        let r = publish_with(bad).await;
+        assert!(matches!(r, Err(StoreError::Invalid(_))), "{r:?}");
+    }
+    assert_eq!(scalar(&dir, "SELECT COUNT(*) FROM keys").await, 0);
+    let head = test_head(bits);
+    let wm = publish_with(head.clone()).await.expect("publish");
+    let reg = store
+        .registration(wm.id)
+        .await
+        .expect("read")
+        .expect("registered");
+    assert_eq!((reg.reference, reg.head.as_ref()), (None, Some(&head)));
+    // Sealed: a changed byte does not open.
+    let mut conn = raw(&dir).await;
+    sqlx::query("UPDATE keys SET head_ct = substr(head_ct, 1, 5) || x'00' || substr(head_ct, 7)")
+        .execute(&mut conn)
+        .await
+        .expect("tamper");
+    assert!(matches!(
+        store.registration(wm.id).await,
+        Err(StoreError::Crypto)
+    ));
+    // A key without a head (every row before migration 0004) reads as none.
+    sqlx::query("UPDATE keys SET head_ct = NULL, head_nonce = NULL")
+        .execute(&mut conn)
+        .await
+        .expect("none");
+    let reg = store
+        .registration(wm.id)
+        .await
+        .expect("read")
+        .expect("registered");
+    assert_eq!(reg.head, None);
+}
+
 #[tokio::test]
 async fn rotating_the_master_key_reseals_everything_and_the_old_key_opens_nothing() {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -666,6 +751,7 @@ async fn rotating_the_master_key_reseals_everything_and_the_old_key_opens_nothin
     enqueue(&store, a.id, 3).await;
     let c = store.claim("w1", LONG).await.expect("claim").expect("job");
     let reference: Vec<f32> = (0..c.key.bits()).map(|i| i as f32 * 0.5 - 3.0).collect();
+    let head = test_head(c.key.bits());
     let wm = store
         .publish_result(
             c.job.id,
@@ -673,6 +759,7 @@ async fn rotating_the_master_key_reseals_everything_and_the_old_key_opens_nothin
             watermarked(&store, a.id, 10, b"w"),
             &c.key,
             Some(&reference),
+            Some(&head),
             &records(10),
             serde_json::Value::Null,
             entry("watermark.publish"),
@@ -682,10 +769,10 @@ async fn rotating_the_master_key_reseals_everything_and_the_old_key_opens_nothin
     let queued = enqueue(&store, a.id, 3).await;
     let before_bytes = all_files_bytes(&dir);
     let new = MasterKey::generate();
-    // keys: message, mask, reference; jobs: two × (message, mask).
+    // keys: message, mask, reference, head; jobs: two × (message, mask).
     assert_eq!(
         store.rotate_master_key(&new, "cli").await.expect("rotate"),
-        7
+        8
     );
     store.close().await;
     assert!(matches!(
@@ -702,6 +789,7 @@ async fn rotating_the_master_key_reseals_everything_and_the_old_key_opens_nothin
         .expect("registered");
     assert_eq!(reg.key, c.key);
     assert_eq!(reg.reference.as_deref(), Some(&reference[..]));
+    assert_eq!(reg.head, Some(head));
     let next = store
         .claim("w2", LONG)
         .await
@@ -753,6 +841,7 @@ async fn every_job_gets_a_secret_random_mask_and_its_result_keeps_it() {
             c.lease_token,
             watermarked(&store, a.id, 10, b"w0"),
             &other,
+            None,
             None,
             &records(10),
             serde_json::Value::Null,
@@ -1367,6 +1456,7 @@ async fn a_publish_failing_half_way_rolls_back_everything() {
             short,
             &c.key,
             None,
+            None,
             &records(10),
             serde_json::Value::Null,
             entry("watermark.publish"),
@@ -1382,6 +1472,7 @@ async fn a_publish_failing_half_way_rolls_back_everything() {
                 message: c.key.message[..31].to_vec(),
                 mask: c.key.mask[..31].to_vec(),
             },
+            None,
             None,
             &records(10),
             serde_json::Value::Null,

@@ -1,7 +1,7 @@
-//! A dispute: rendered images are decoded once per message length (logits averaged over the
-//! images) and tested against every candidate's embedded bits — each candidate's bits read
-//! relative to its asset reference, when it has one — with p-values corrected for the number of
-//! candidates tested.
+//! A dispute: rendered images are decoded once per message length (logits and the decoder's
+//! pooled features averaged over the images) and tested against every candidate's embedded
+//! bits — each candidate's bits read through its asset's matched head and relative to its asset
+//! reference, when it has them — with p-values corrected for the number of candidates tested.
 
 use std::collections::BTreeMap;
 
@@ -10,6 +10,16 @@ use uuid::Uuid;
 
 use super::message::to_hex;
 use super::stats::{Detection, StatsError, detect};
+use crate::decoder::projection::ViewProjection;
+
+/// What the images decode to for one message length, averaged over the images.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Decoded {
+    /// The shipped decoder's logits.
+    pub logits: Vec<f32>,
+    /// The decoder's pooled features (what a matched head reads).
+    pub features: Vec<f32>,
+}
 
 /// A registered watermark the images are tested against.
 #[derive(Clone, Debug)]
@@ -20,6 +30,10 @@ pub struct Candidate {
     /// The asset reference (one logit per bit) subtracted before the bits are read, when the
     /// embedding decoded relative to the asset.
     pub reference: Option<Vec<f32>>,
+    /// The asset's matched head ([`ViewProjection::matched_logits_of`]), when the embedding
+    /// read the bits through one: the candidate's logits are the head's of the decoded
+    /// features instead of the shipped decoder's.
+    pub head: Option<ViewProjection>,
 }
 
 /// One candidate's outcome.
@@ -28,6 +42,8 @@ pub struct CandidateResult {
     pub asset_id: Uuid,
     /// Whether the bits were read relative to the candidate's asset reference.
     pub reference: bool,
+    /// Whether the bits were read through the candidate's matched head.
+    pub matched_head: bool,
     #[serde(flatten)]
     pub detection: Detection,
 }
@@ -63,15 +79,35 @@ pub fn bits_relative(logits: &[f32], reference: Option<&[f32]>) -> Result<Vec<bo
     }
 }
 
-/// Tests decoded mean logits (`decoded[bits]`, one vector per message length) against every
-/// candidate, each read relative to the candidate's reference. A candidate whose length was not
-/// decoded is an error (the caller decodes every length it tests).
+/// The logits `candidate` reads from `d`: its matched head's, or the shipped decoder's.
+fn candidate_logits<'a>(
+    d: &'a Decoded,
+    candidate: &Candidate,
+) -> Result<std::borrow::Cow<'a, [f32]>, StatsError> {
+    match &candidate.head {
+        None => Ok(std::borrow::Cow::Borrowed(&d.logits)),
+        Some(h) => h
+            .matched_logits_of(&d.features)
+            .filter(|z| z.len() == candidate.payload.len())
+            .map(std::borrow::Cow::Owned)
+            .ok_or(StatsError::LengthMismatch {
+                decoded: d.features.len(),
+                message: h.features(),
+            }),
+    }
+}
+
+/// Tests what the images decoded to (`decoded[bits]`, one per message length) against every
+/// candidate, each read through the candidate's matched head and relative to its reference
+/// when it has them. A candidate whose length was not decoded is an error (the caller decodes
+/// every length it tests).
 ///
-/// For an image that does not carry a candidate's watermark the test stays exact: the
-/// reference is fixed before the image is seen and is independent of the candidate's secret
-/// mask, so each read bit matches the payload with probability ½ (`store::keys`).
+/// For an image that does not carry a candidate's watermark the test stays exact: the head and
+/// the reference are fixed before the image is seen and are independent of the candidate's
+/// secret mask (both come from the unmarked original), so each read bit matches the payload
+/// with probability ½ (`store::keys`).
 pub fn judge(
-    decoded: &BTreeMap<usize, Vec<f32>>,
+    decoded: &BTreeMap<usize, Decoded>,
     candidates: &[Candidate],
     fpr: f64,
     limit: usize,
@@ -86,10 +122,12 @@ pub fn judge(
                     decoded: 0,
                     message: c.payload.len(),
                 })?;
-            let bits = bits_relative(d, c.reference.as_deref())?;
+            let z = candidate_logits(d, c)?;
+            let bits = bits_relative(&z, c.reference.as_deref())?;
             Ok(CandidateResult {
                 asset_id: c.asset_id,
                 reference: c.reference.is_some(),
+                matched_head: c.head.is_some(),
                 detection: detect(&bits, &c.payload, k, fpr)?,
             })
         })
@@ -112,12 +150,13 @@ pub fn judge(
     })
 }
 
-/// Hex of the decoded bits per length (without any reference), for the response.
-pub fn decoded_hex(decoded: &BTreeMap<usize, Vec<f32>>) -> BTreeMap<usize, String> {
+/// Hex of the shipped decoder's bits per length (without any head or reference), for the
+/// response.
+pub fn decoded_hex(decoded: &BTreeMap<usize, Decoded>) -> BTreeMap<usize, String> {
     decoded
         .iter()
-        .map(|(&n, z)| {
-            let bits: Vec<bool> = z.iter().map(|&z| z > 0.0).collect();
+        .map(|(&n, d)| {
+            let bits: Vec<bool> = d.logits.iter().map(|&z| z > 0.0).collect();
             (n, to_hex(&bits))
         })
         .collect()
@@ -137,23 +176,32 @@ mod tests {
         b.iter().map(|&b| if b { 1.5 } else { -1.5 }).collect()
     }
 
+    fn plain(logits: Vec<f32>) -> Decoded {
+        Decoded {
+            logits,
+            features: Vec::new(),
+        }
+    }
+
     #[test]
     fn the_true_message_wins_and_the_correction_uses_every_candidate() {
         let m = bits(0xdead_beef_1234_5678, 32);
         let mut d = m.clone();
         d[0] = !d[0]; // 31 of 32
-        let decoded = BTreeMap::from([(32, logits(&d))]);
+        let decoded = BTreeMap::from([(32, plain(logits(&d)))]);
         let mut cands: Vec<Candidate> = (0..9)
             .map(|i| Candidate {
                 asset_id: Uuid::from_u128(i),
                 payload: m.iter().map(|&b| !b).collect(), // 1 of 32
                 reference: None,
+                head: None,
             })
             .collect();
         cands.push(Candidate {
             asset_id: Uuid::from_u128(99),
             payload: m,
             reference: None,
+            head: None,
         });
         let v = judge(&decoded, &cands, 1e-6, 3).unwrap();
         assert_eq!(v.candidates_tested, 10);
@@ -175,11 +223,12 @@ mod tests {
         let m = bits(0x0123_4567_89ab_cdef, 32);
         let lean = vec![2.0f32; 32];
         let z: Vec<f32> = m.iter().map(|&b| if b { 3.0 } else { 1.0 }).collect();
-        let decoded = BTreeMap::from([(32, z)]);
+        let decoded = BTreeMap::from([(32, plain(z))]);
         let with = Candidate {
             asset_id: Uuid::from_u128(1),
             payload: m.clone(),
             reference: Some(lean),
+            head: None,
         };
         let without = Candidate {
             reference: None,
@@ -203,14 +252,56 @@ mod tests {
     }
 
     #[test]
+    fn a_candidate_with_a_matched_head_reads_the_features_through_it() {
+        // Two features, two bits: the head reads bit 0 as f1 − f0 and bit 1 as f0 + f1 about
+        // μ = (0.5, 0.5); the shipped logits say the opposite of the head's bits.
+        let head = ViewProjection {
+            mean: vec![0.5, 0.5],
+            basis: Vec::new(),
+            explained: 0.0,
+            head: Some(vec![-1.0, 1.0, 1.0, 1.0]),
+        };
+        let d = Decoded {
+            logits: vec![1.0, 1.0],
+            features: vec![0.25, 0.75], // f − μ = (−0.25, 0.25): head logits (0.5, 0)
+        };
+        let z = head.matched_logits_of(&d.features).unwrap();
+        assert_eq!(z, vec![0.5, 0.0]);
+        let decoded = BTreeMap::from([(2, d)]);
+        let cand = Candidate {
+            asset_id: Uuid::from_u128(7),
+            payload: vec![true, false],
+            reference: Some(vec![0.0, 0.25]),
+            head: Some(head.clone()),
+        };
+        let v = judge(&decoded, std::slice::from_ref(&cand), 1e-6, 10).unwrap();
+        let r = &v.results[0];
+        assert!(r.matched_head && r.reference);
+        // Through the head and the reference: (0.5 − 0, 0 − 0.25) → bits (1, 0), both match;
+        // the shipped logits would have read (1, 1).
+        assert_eq!(r.detection.matches, 2);
+        // A head for other features is an error, not a silent misread.
+        let wrong = Candidate {
+            head: Some(ViewProjection {
+                mean: vec![0.0; 3],
+                head: Some(vec![1.0; 6]),
+                ..head
+            }),
+            ..cand
+        };
+        assert!(judge(&decoded, &[wrong], 1e-6, 10).is_err());
+    }
+
+    #[test]
     fn no_candidates_is_not_detected_and_missing_lengths_are_errors() {
-        let decoded = BTreeMap::from([(32, vec![1.0; 32])]);
+        let decoded = BTreeMap::from([(32, plain(vec![1.0; 32]))]);
         let v = judge(&decoded, &[], 1e-6, 10).unwrap();
         assert!(!v.detected && v.best.is_none() && v.candidates_tested == 0);
         let c = Candidate {
             asset_id: Uuid::nil(),
             payload: vec![true; 48],
             reference: None,
+            head: None,
         };
         assert!(judge(&decoded, &[c], 1e-6, 10).is_err());
     }
