@@ -230,7 +230,13 @@ fn a_reference_is_reported_and_verify_reads_it() {
         .output()
         .unwrap();
     assert!(!bad.status.success());
-    assert!(String::from_utf8_lossy(&bad.stderr).contains("reference for 32 bits"));
+    // (the report's matched head, read first, names the length it reads)
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("matched head for 32 bits"));
+    assert_eq!(v["options"]["projection"]["matched"], true);
+    assert_eq!(
+        v["view_projection"]["head"].as_array().map(Vec::len),
+        Some(32 * 128)
+    );
     // Plain decoding on request: no reference measured or reported.
     let v = ok_json(
         &bin()

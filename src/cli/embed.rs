@@ -359,6 +359,12 @@ pub(crate) fn with_report_reference(
             v.features(),
             model.decoder.feature_count()
         ),
+        Some(v) if v.head.is_some() && v.head_bits() != model.bits() => bail!(
+            "{}: matched head for {} bits, the message has {}",
+            p.display(),
+            v.head_bits(),
+            model.bits()
+        ),
         Some(v) => model.with_projection(v),
         None => model,
     };

@@ -110,6 +110,9 @@ impl JobOptions {
                     .into(),
             );
         }
+        if embed.extra_views > 1000 {
+            return Err("options.embed.extra_views: at most 1000".into());
+        }
         if embed.finetune.check_every == 0 {
             return Err("options.embed.finetune.check_every must be at least 1".into());
         }
