@@ -481,22 +481,29 @@ mod tests {
     }
 }
 
-/// How much of the unmarked asset's view-to-view logit spread on unseen views the projection
-/// removes (docs/RESULTS.md, "view projection"): `cargo test --release -- --ignored
-/// projection_spread --nocapture` with ../shared/data.
+/// Measurements on ../shared/data (ignored tests; docs/RESULTS.md):
+/// - `projection_spread`: how much of the unmarked asset's view-to-view logit spread on unseen
+///   views the rank-k projection removes;
+/// - `head_gain`: whether a head chosen per asset reads more signal per unit of image change
+///   than the shipped random head — for each bit direction a (pooled-feature space), the gain
+///   aᵀGa ([`decoder_gain`] over the training views) over the asset's own view noise aᵀNa (N the
+///   features' covariance over the calibration, training and unseen views).
+///
+/// `cargo test --release --lib -- --ignored projection_spread head_gain --nocapture`.
 #[cfg(test)]
 mod measure {
     use super::*;
     use crate::verify::bench::{QualityOptions, views};
+    use burn::tensor::{Tensor, TensorData};
 
-    #[test]
-    #[ignore = "a measurement on ../shared/data (about a minute)"]
-    fn projection_spread() {
+    /// Donut with the bench's 256² training and unseen cameras and the shipped 32-bit model;
+    /// `None` (after saying so) without ../shared/data.
+    fn donut() -> Option<(Gaussians, Vec<Camera>, Vec<Camera>, WatermarkModel)> {
         let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/scenes");
         let path = dir.join("donut/fused.ply");
         if !path.exists() {
             eprintln!("SKIP: {} is missing", path.display());
-            return;
+            return None;
         }
         let g = crate::scene::read_scene(&path, &crate::scene::Limits::default()).unwrap();
         let opts = QualityOptions {
@@ -505,80 +512,17 @@ mod measure {
         };
         let scene = crate::verify::bench::shared_scenes().remove(0);
         let (train, unseen) = views(&scene, &g, &opts).unwrap();
-        let device = burn::tensor::Device::flex();
-        let model = WatermarkModel::shipped(32, &device).unwrap();
-        let ro = RenderOptions::default();
-        let feats = |cams: &[Camera]| original_features(&g, cams, &model, &ro).unwrap();
-        let cal = feats(&calibration_cameras(
-            &g,
-            &train,
-            &ProjectionConfig::default(),
-        ));
-        let test = feats(&unseen);
-        let trainf = feats(&train);
-        let spread = |m: &WatermarkModel, f: &[Vec<f32>]| -> f64 {
-            // Logits from features: the head (and whitening) on a batch of pooled features.
-            let logits: Vec<Vec<f32>> = f
-                .iter()
-                .map(|row| {
-                    let x = burn::tensor::Tensor::<2>::from_data(
-                        burn::tensor::TensorData::new(row.clone(), [1, row.len()]),
-                        &device,
-                    );
-                    let x = match &m.projection {
-                        Some(p) => p.apply(x),
-                        None => x,
-                    };
-                    let z = m.decoder.head(x);
-                    let z = match &m.sidecar.whitening {
-                        Some(w) => w.apply(z),
-                        None => z,
-                    };
-                    z.try_into_vec_as::<f32>().unwrap()
-                })
-                .collect();
-            let l = logits[0].len();
-            let n = logits.len() as f64;
-            let mut var = 0.0;
-            for i in 0..l {
-                let mean: f64 = logits.iter().map(|z| f64::from(z[i])).sum::<f64>() / n;
-                var += logits
-                    .iter()
-                    .map(|z| (f64::from(z[i]) - mean).powi(2))
-                    .sum::<f64>()
-                    / n;
-            }
-            (var / l as f64).sqrt()
-        };
-        for rank in [0usize, 4, 8, 16, 32, 48, 64, 96] {
-            let m = if rank == 0 {
-                model.clone()
-            } else {
-                model
-                    .clone()
-                    .with_projection(ViewProjection::fit(&cal, rank, 32).unwrap())
-            };
-            let ex = m.projection.as_ref().map_or(0.0, |p| p.explained);
-            eprintln!(
-                "rank {rank:3}: explains {:.3} of the calibration variance; logit spread (std) training views {:.3}, unseen views {:.3}",
-                ex,
-                spread(&m, &trainf),
-                spread(&m, &test)
-            );
-        }
+        let model = WatermarkModel::shipped(32, &burn::tensor::Device::flex()).unwrap();
+        Some((g, train, unseen, model))
     }
-}
 
-/// Whether a head chosen per asset reads more signal per unit of image change than the shipped
-/// random head: for each bit direction a (pooled-feature space), the gain aᵀGa ([`decoder_gain`]
-/// over the training views) over the asset's own view noise aᵀNa (N the features' covariance
-/// over the calibration, training and unseen views). `cargo test --release --lib -- --ignored
-/// head_gain --nocapture` with ../shared/data.
-#[cfg(test)]
-mod measure_gain {
-    use super::*;
-    use crate::verify::bench::{QualityOptions, views};
-    use burn::tensor::{Tensor, TensorData};
+    /// `m`'s logits of pooled feature rows (`[n, F]` row-major).
+    fn logits_of(m: &WatermarkModel, rows: Vec<f32>, n: usize) -> Vec<f32> {
+        let f = m.decoder.feature_count();
+        let x =
+            Tensor::<2>::from_data(TensorData::new(rows, [n, f]), &burn::tensor::Device::flex());
+        m.forward_pooled(x).try_into_vec_as::<f32>().unwrap()
+    }
 
     fn cov(rows: &[Vec<f32>]) -> Vec<f64> {
         let f = rows[0].len();
@@ -608,38 +552,75 @@ mod measure_gain {
     }
 
     #[test]
+    #[ignore = "a measurement on ../shared/data (about a minute)"]
+    fn projection_spread() {
+        let Some((g, train, unseen, model)) = donut() else {
+            return;
+        };
+        let ro = RenderOptions::default();
+        let feats = |cams: &[Camera]| original_features(&g, cams, &model, &ro).unwrap();
+        let cal = feats(&calibration_cameras(
+            &g,
+            &train,
+            &ProjectionConfig::default(),
+        ));
+        let (test, trainf) = (feats(&unseen), feats(&train));
+        let spread = |m: &WatermarkModel, f: &[Vec<f32>]| -> f64 {
+            let l = m.bits();
+            let z = logits_of(m, f.concat(), f.len());
+            let n = f.len() as f64;
+            let var: f64 = (0..l)
+                .map(|i| {
+                    let mean = z
+                        .iter()
+                        .skip(i)
+                        .step_by(l)
+                        .map(|&v| f64::from(v))
+                        .sum::<f64>()
+                        / n;
+                    z.iter()
+                        .skip(i)
+                        .step_by(l)
+                        .map(|&v| (f64::from(v) - mean).powi(2))
+                        .sum::<f64>()
+                        / n
+                })
+                .sum();
+            (var / l as f64).sqrt()
+        };
+        for rank in [0usize, 4, 8, 16, 32, 48, 64, 96] {
+            let m = if rank == 0 {
+                model.clone()
+            } else {
+                model
+                    .clone()
+                    .with_projection(ViewProjection::fit(&cal, rank, 32).unwrap())
+            };
+            let ex = m.projection.as_ref().map_or(0.0, |p| p.explained);
+            eprintln!(
+                "rank {rank:3}: explains {:.3} of the calibration variance; logit spread (std) training views {:.3}, unseen views {:.3}",
+                ex,
+                spread(&m, &trainf),
+                spread(&m, &test)
+            );
+        }
+    }
+
+    #[test]
     #[ignore = "a measurement on ../shared/data (a few minutes)"]
     fn head_gain() {
-        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/scenes");
-        let path = dir.join("donut/fused.ply");
-        if !path.exists() {
-            eprintln!("SKIP: {} is missing", path.display());
+        let Some((g, train, unseen, model)) = donut() else {
             return;
-        }
-        let g = crate::scene::read_scene(&path, &crate::scene::Limits::default()).unwrap();
-        let opts = QualityOptions {
-            size: 256,
-            ..QualityOptions::full(dir.clone())
         };
-        let scene = crate::verify::bench::shared_scenes().remove(0);
-        let (train, unseen) = views(&scene, &g, &opts).unwrap();
-        let device = burn::tensor::Device::flex();
-        let model = WatermarkModel::shipped(32, &device).unwrap();
         let ro = RenderOptions::default();
         let f = model.decoder.feature_count();
         let cfg = ProjectionConfig::default();
-        let cal =
-            original_features(&g, &calibration_cameras(&g, &train, &cfg), &model, &ro).unwrap();
+        let feats = |cams: &[Camera]| original_features(&g, cams, &model, &ro).unwrap();
+        let cal = feats(&calibration_cameras(&g, &train, &cfg));
         let noise = [
             ("calibration", cov(&cal)),
-            (
-                "training",
-                cov(&original_features(&g, &train, &model, &ro).unwrap()),
-            ),
-            (
-                "unseen",
-                cov(&original_features(&g, &unseen, &model, &ro).unwrap()),
-            ),
+            ("training", cov(&feats(&train))),
+            ("unseen", cov(&feats(&unseen))),
         ];
         let t = std::time::Instant::now();
         let gm = decoder_gain(&g, &train, &model, &ro).unwrap();
@@ -650,20 +631,14 @@ mod measure_gain {
         );
         // The shipped head's directions: z(e_j) − z(0) through head and whitening.
         let shipped: Vec<Vec<f64>> = {
-            let run = |x: Vec<f32>, b: usize| -> Vec<f32> {
-                let t = Tensor::<2>::from_data(TensorData::new(x, [b, f]), &device);
-                let z = model.decoder.head(t);
-                let z = match &model.sidecar.whitening {
-                    Some(w) => w.apply(z),
-                    None => z,
-                };
-                z.try_into_vec_as::<f32>().unwrap()
-            };
             let mut eye = vec![0.0f32; f * f];
             for i in 0..f {
                 eye[i * f + i] = 1.0;
             }
-            let (ze, z0) = (run(eye, f), run(vec![0.0; f], 1));
+            let (ze, z0) = (
+                logits_of(&model, eye, f),
+                logits_of(&model, vec![0.0; f], 1),
+            );
             (0..32)
                 .map(|k| (0..f).map(|j| f64::from(ze[j * 32 + k] - z0[k])).collect())
                 .collect()
