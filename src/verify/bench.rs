@@ -466,6 +466,24 @@ pub fn markdown(report: &QualityReport) -> String {
             }
         );
     }
+    if report.runs.iter().any(|r| !r.eval.per_view.is_empty()) {
+        s += "\nEach unseen view, clean (share of its pixels showing the asset · bits right, %):\n\n";
+        for r in report.runs.iter().filter(|r| !r.eval.per_view.is_empty()) {
+            let views: Vec<String> = r
+                .eval
+                .per_view
+                .iter()
+                .map(|v| {
+                    format!(
+                        "{:.0} % · {:.1}",
+                        100.0 * v.coverage,
+                        100.0 * v.bit_accuracy
+                    )
+                })
+                .collect();
+            s += &format!("- {}, {} bits: {}\n", r.scene, r.bits, views.join("; "));
+        }
+    }
     s
 }
 
@@ -520,6 +538,7 @@ mod tests {
             ssim: 0.985,
             fpr: 1e-6,
             rows,
+            per_view: vec![],
         };
         assert!(
             check(&eval, 32).iter().all(|t| t.met),

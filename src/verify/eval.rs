@@ -67,6 +67,31 @@ pub struct SceneEval {
     pub ssim: f64,
     pub fpr: f64,
     pub rows: Vec<Row>,
+    /// Each view on its own, clean: how much of it shows the asset, its fidelity, its bits.
+    pub per_view: Vec<ViewEval>,
+}
+
+/// One evaluation view, clean.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct ViewEval {
+    pub camera: String,
+    /// Share of the view's pixels where the original's render differs from the background
+    /// (the asset's footprint: a view that barely shows the asset cannot carry its bits).
+    pub coverage: f64,
+    pub psnr: f64,
+    pub bit_accuracy: f64,
+}
+
+/// Share of `img`'s pixels farther than 2 levels from `background` (linear [0, 1]) in any
+/// channel.
+pub fn coverage(img: &RgbImage, background: [f32; 3]) -> f64 {
+    let bg = background.map(|c| (c.clamp(0.0, 1.0) * 255.0).round() as i32);
+    let n = (img.width() as usize * img.height() as usize).max(1);
+    let on = img
+        .pixels()
+        .filter(|p| (0..3).any(|c| (i32::from(p.0[c]) - bg[c]).abs() > 2))
+        .count();
+    on as f64 / n as f64
 }
 
 /// Renders `g` through every camera to 8-bit images.
@@ -201,6 +226,22 @@ pub fn evaluate_scene(
         .sum::<f64>()
         / n;
 
+    let per_view = cams
+        .iter()
+        .zip(orig.iter().zip(&mark))
+        .map(|(c, (a, b))| {
+            let z = model
+                .logits(rgb8_tensor(b, &device))
+                .pop()
+                .expect("one image");
+            ViewEval {
+                camera: c.name.clone(),
+                coverage: coverage(a, opts.background),
+                psnr: psnr_u8(a, b),
+                bit_accuracy: bit_accuracy(&z, message),
+            }
+        })
+        .collect();
     let mut rows = vec![
         row("clean", "clean", &mark, model, message, fpr, &device)?,
         row("unmarked", "unmarked", &orig, model, message, fpr, &device)?,
@@ -239,5 +280,27 @@ pub fn evaluate_scene(
         ssim: ssim_mean,
         fpr,
         rows,
+        per_view,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn coverage_counts_the_pixels_that_differ_from_the_background() {
+        let mut img = RgbImage::from_pixel(10, 10, image::Rgb([255, 255, 255]));
+        assert_eq!(coverage(&img, [1.0, 1.0, 1.0]), 0.0);
+        // Two levels off the background is still background (8-bit rounding of a render).
+        img.put_pixel(0, 0, image::Rgb([253, 255, 255]));
+        assert_eq!(coverage(&img, [1.0, 1.0, 1.0]), 0.0);
+        for x in 0..10 {
+            for y in 0..3 {
+                img.put_pixel(x, y, image::Rgb([255, 240, 255]));
+            }
+        }
+        assert!((coverage(&img, [1.0, 1.0, 1.0]) - 0.3).abs() < 1e-12);
+        assert_eq!(coverage(&img, [0.0, 0.0, 0.0]), 1.0);
+    }
 }
