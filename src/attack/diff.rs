@@ -3,8 +3,11 @@
 //! `[B, C, H, W]` of images in [0, 1], so the watermark loss of an attacked render
 //! back-propagates to the render (and from there to the Gaussians).
 //!
-//! Every [`DiffAttack`] variant is the differentiable counterpart of the [`super::real`] attack of
-//! the same name, with the same parameter semantics (taken from the baselines' public code):
+//! Every [`DiffAttack`] variant but `Window` is the differentiable counterpart of the
+//! [`super::real`] attack of the same name, with the same parameter semantics (taken from the
+//! baselines' public code); `Window` is a partial view for EOT training only (a crop at a random
+//! place: the bits must be readable from any part of a view, which is what another view of the
+//! asset shows):
 //!
 //! | attack | output shape | neutral value | gradient |
 //! |---|---|---|---|
@@ -13,6 +16,7 @@
 //! | `Rotate { degrees }`: bilinear `grid_sample`, black outside | same | 0° | exact (a.e.) |
 //! | `Scale { factor }`: bilinear resize, keeps the new size | ⌊H·f⌋ × ⌊W·f⌋ | 1 | exact |
 //! | `Crop { keep }`: centred crop of a fraction of the area | ⌊H·√k⌋ × ⌊W·√k⌋ | 1 | exact |
+//! | `Window { keep, x, y }`: the same crop anywhere in the image | ⌊H·√k⌋ × ⌊W·√k⌋ | 1 | exact |
 //! | `Jpeg { quality }`: 8×8 DCT quantisation in YCbCr | same | ≈ 100 | straight-through |
 //! | `Brightness { factor }`: `clamp(f·x)` | same | 1 | exact (0 where clipped) |
 //! | `Contrast { factor }`: `clamp(f·x + (1−f)·mean luma)` | same | 1 | exact (0 where clipped) |
@@ -118,6 +122,9 @@ pub enum DiffAttack {
     Scale { factor: f32 },
     /// Centre crop keeping the fraction `keep` ∈ (0, 1] of the area; keeps the cropped size.
     Crop { keep: f32 },
+    /// The crop of `Crop { keep }` placed at `x`, `y` ∈ [0, 1] of the free room (0, 0: the top
+    /// left corner; 0.5, 0.5: centred); keeps the cropped size.
+    Window { keep: f32, x: f32, y: f32 },
     /// Differentiable JPEG approximation at `quality` (1..=100).
     Jpeg { quality: u8 },
     /// `clamp(factor·x, 0, 1)`, factor ≥ 0.
@@ -138,6 +145,7 @@ impl DiffAttack {
             Self::Perspective { .. } => "perspective",
             Self::Scale { .. } => "scale",
             Self::Crop { .. } => "crop",
+            Self::Window { .. } => "window",
             Self::Jpeg { .. } => "jpeg",
             Self::Brightness { .. } => "brightness",
             Self::Contrast { .. } => "contrast",
@@ -192,6 +200,11 @@ impl DiffAttack {
             }
             Self::Scale { factor } => range("factor", factor, factor > 0.0, "> 0"),
             Self::Crop { keep } => range("keep", keep, keep > 0.0 && keep <= 1.0, "in (0, 1]"),
+            Self::Window { keep, x, y } => {
+                range("keep", keep, keep > 0.0 && keep <= 1.0, "in (0, 1]")?;
+                range("x", x, (0.0..=1.0).contains(&x), "in [0, 1]")?;
+                range("y", y, (0.0..=1.0).contains(&y), "in [0, 1]")
+            }
             Self::Jpeg { quality } => {
                 if quality == 0 || quality > 100 {
                     Err(DiffAttackError::JpegQuality(quality))
@@ -263,6 +276,16 @@ impl DiffAttack {
                 let (ch, cw) = (scaled_len(h, side), scaled_len(w, side));
                 self.check_size(h, w, ch, cw)?;
                 centre_crop(x, ch as usize, cw as usize)
+            }
+            Self::Window { keep, x: fx, y: fy } => {
+                let side = f64::from(keep).sqrt();
+                let (ch, cw) = (scaled_len(h, side), scaled_len(w, side));
+                self.check_size(h, w, ch, cw)?;
+                let (ch, cw) = (ch as usize, cw as usize);
+                let top = ((h - ch) as f64 * f64::from(fy)).round() as usize;
+                let left = ((w - cw) as f64 * f64::from(fx)).round() as usize;
+                x.narrow(2, top.min(h - ch), ch)
+                    .narrow(3, left.min(w - cw), cw)
             }
             Self::Jpeg { quality } => {
                 rgb("jpeg")?;
@@ -698,6 +721,8 @@ pub enum AttackFamily {
     Scale { factor: (f32, f32) },
     /// Centre crop keeping an area fraction in `keep`.
     Crop { keep: (f32, f32) },
+    /// A crop keeping an area fraction in `keep`, anywhere in the image (uniform placement).
+    Window { keep: (f32, f32) },
     /// JPEG approximation at a quality in `quality` (inclusive).
     Jpeg { quality: (u8, u8) },
     /// Brightness factor in `factor`.
@@ -731,6 +756,11 @@ impl AttackFamily {
                 factor: r(rng, factor),
             },
             Self::Crop { keep } => DiffAttack::Crop { keep: r(rng, keep) },
+            Self::Window { keep } => DiffAttack::Window {
+                keep: r(rng, keep),
+                x: r(rng, (0.0, 1.0)),
+                y: r(rng, (0.0, 1.0)),
+            },
             Self::Jpeg { quality: (lo, hi) } => DiffAttack::Jpeg {
                 quality: rng.range_int(lo.into(), hi.into()) as u8,
             },
@@ -884,6 +914,11 @@ mod tests {
             DiffAttack::Rotate { degrees: 30.0 },
             DiffAttack::Scale { factor: 0.75 },
             DiffAttack::Crop { keep: 0.4 },
+            DiffAttack::Window {
+                keep: 0.4,
+                x: 0.2,
+                y: 0.9,
+            },
             DiffAttack::Jpeg { quality: 50 },
             DiffAttack::Brightness { factor: 0.8 },
             DiffAttack::Contrast { factor: 0.7 },
@@ -905,7 +940,9 @@ mod tests {
             match a {
                 DiffAttack::Scale { .. } => [2, 3, 30, 45],
                 // √0.4 · 40 = 25.3 → 25, √0.4 · 60 = 37.9 → 37.
-                DiffAttack::Crop { .. } | DiffAttack::Chain(_) => [2, 3, 25, 37],
+                DiffAttack::Crop { .. } | DiffAttack::Window { .. } | DiffAttack::Chain(_) => {
+                    [2, 3, 25, 37]
+                }
                 _ => [2, 3, 40, 60],
             }
         };
@@ -913,6 +950,51 @@ mod tests {
             let y = a.apply(x.clone()).unwrap();
             assert_eq!(y.dims(), expect(&a), "{a:?}");
         }
+    }
+
+    #[test]
+    fn a_window_is_the_crop_moved_to_its_place() {
+        let x = smooth(1, 40, 60);
+        let at = |xf: f32, yf: f32| {
+            DiffAttack::Window {
+                keep: 0.4,
+                x: xf,
+                y: yf,
+            }
+            .apply(x.clone())
+            .unwrap()
+        };
+        // Centred: the centre crop (free room 15 × 23: top 7.5 → 8, left 11.5 → 12).
+        let centred = at(0.5, 0.5);
+        assert_eq!(centred.dims(), [1, 3, 25, 37]);
+        assert_eq!(
+            max_abs_diff(centred, x.clone().narrow(2, 8, 25).narrow(3, 12, 37)),
+            0.0
+        );
+        // The corners.
+        let tl = x.clone().narrow(2, 0, 25).narrow(3, 0, 37);
+        assert_eq!(max_abs_diff(at(0.0, 0.0), tl), 0.0);
+        let br = x.clone().narrow(2, 15, 25).narrow(3, 23, 37);
+        assert_eq!(max_abs_diff(at(1.0, 1.0), br), 0.0);
+        // Out of range places are refused.
+        let bad = DiffAttack::Window {
+            keep: 0.4,
+            x: 1.5,
+            y: 0.0,
+        };
+        assert!(bad.validate().is_err());
+        // Drawn from its family: the keep in range, the place anywhere.
+        let fam = AttackFamily::Window { keep: (0.2, 0.5) };
+        let mut rng = EotRng::new(4);
+        let mut xs = Vec::new();
+        for _ in 0..50 {
+            let Some(DiffAttack::Window { keep, x, y }) = fam.sample(&mut rng) else {
+                panic!("not a window")
+            };
+            assert!((0.2..=0.5).contains(&keep) && (0.0..=1.0).contains(&y));
+            xs.push(x);
+        }
+        assert!(xs.iter().any(|&v| v < 0.2) && xs.iter().any(|&v| v > 0.8));
     }
 
     #[test]
@@ -931,6 +1013,11 @@ mod tests {
             DiffAttack::Rotate { degrees: 360.0 },
             DiffAttack::Scale { factor: 1.0 },
             DiffAttack::Crop { keep: 1.0 },
+            DiffAttack::Window {
+                keep: 1.0,
+                x: 0.7,
+                y: 0.1,
+            },
             DiffAttack::Brightness { factor: 1.0 },
             DiffAttack::Contrast { factor: 1.0 },
             DiffAttack::Chain(vec![]),
