@@ -22,7 +22,8 @@ pub enum DevicePolicy {
 }
 
 /// Views the embedding trains on when an upload comes without cameras (orbit around the scene)
-/// and the resolution renders are made at.
+/// and the resolution renders are made at. 512² by default: at 256² donut's unseen views decode
+/// 97.9 % of the bits, at 512² 99.2 % (docs/RESULTS.md), for about 2.6× the CPU time.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ViewDefaults {
@@ -35,8 +36,8 @@ impl Default for ViewDefaults {
     fn default() -> Self {
         Self {
             orbit: 24,
-            width: 256,
-            height: 256,
+            width: 512,
+            height: 512,
         }
     }
 }
@@ -332,7 +333,7 @@ mod tests {
         assert_eq!(c.bind.port(), 9000);
         assert_eq!(c.workers, Some(2));
         assert_eq!(c.views.orbit, 12);
-        assert_eq!(c.views.width, 256, "unnamed fields keep their defaults");
+        assert_eq!(c.views.width, 512, "unnamed fields keep their defaults");
         let c = c
             .with_env(env(&[
                 ("SPLATMARK_WORKERS", "3"),
