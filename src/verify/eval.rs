@@ -134,7 +134,18 @@ fn row(
     fpr: f64,
     device: &Device,
 ) -> Result<Row, EvalError> {
-    let logits: Vec<Vec<f32>> = images
+    row_of_logits(
+        name,
+        kind,
+        &view_logits(images, model, device),
+        message,
+        fpr,
+    )
+}
+
+/// Each image's logits, decoded alone.
+fn view_logits(images: &[RgbImage], model: &WatermarkModel, device: &Device) -> Vec<Vec<f32>> {
+    images
         .iter()
         .map(|im| {
             model
@@ -142,7 +153,17 @@ fn row(
                 .pop()
                 .expect("one image")
         })
-        .collect();
+        .collect()
+}
+
+/// The row for `message` from each view's logits.
+fn row_of_logits(
+    name: &str,
+    kind: &'static str,
+    logits: &[Vec<f32>],
+    message: &[bool],
+    fpr: f64,
+) -> Result<Row, EvalError> {
     let per_view =
         logits.iter().map(|z| bit_accuracy(z, message)).sum::<f64>() / logits.len() as f64;
     let l = message.len();
@@ -152,7 +173,7 @@ fn row(
     let decoded: Vec<bool> = mean.iter().map(|&z| z > 0.0).collect();
     let d = detect(&decoded, message, 1, fpr)?;
     let mut alone = 0usize;
-    for z in &logits {
+    for z in logits {
         let bits: Vec<bool> = z.iter().map(|&v| v > 0.0).collect();
         alone += usize::from(detect(&bits, message, 1, fpr)?.detected);
     }
@@ -226,24 +247,20 @@ pub fn evaluate_scene(
         .sum::<f64>()
         / n;
 
+    let clean = view_logits(&mark, model, &device);
     let per_view = cams
         .iter()
         .zip(orig.iter().zip(&mark))
-        .map(|(c, (a, b))| {
-            let z = model
-                .logits(rgb8_tensor(b, &device))
-                .pop()
-                .expect("one image");
-            ViewEval {
-                camera: c.name.clone(),
-                coverage: coverage(a, opts.background),
-                psnr: psnr_u8(a, b),
-                bit_accuracy: bit_accuracy(&z, message),
-            }
+        .zip(&clean)
+        .map(|((c, (a, b)), z)| ViewEval {
+            camera: c.name.clone(),
+            coverage: coverage(a, opts.background),
+            psnr: psnr_u8(a, b),
+            bit_accuracy: bit_accuracy(z, message),
         })
         .collect();
     let mut rows = vec![
-        row("clean", "clean", &mark, model, message, fpr, &device)?,
+        row_of_logits("clean", "clean", &clean, message, fpr)?,
         row("unmarked", "unmarked", &orig, model, message, fpr, &device)?,
     ];
     let mut image_attacks: Vec<(String, RealAttack)> = paper_protocol(seed)
