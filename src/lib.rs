@@ -7,6 +7,7 @@
 // is how bad values get rejected.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
+pub mod alloc;
 pub mod app;
 pub mod attack;
 pub mod cli;

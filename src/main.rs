@@ -1,3 +1,4 @@
 fn main() -> std::process::ExitCode {
+    splatmark::alloc::tune();
     splatmark::cli::main()
 }

@@ -308,6 +308,7 @@ fn print_progress(p: &crate::embed::pipeline::Progress, every: usize) {
     match p.phase {
         Phase::Targets => eprintln!("rendering targets…"),
         Phase::Plan => eprintln!("pruning, scoring, selecting and splitting carriers…"),
+        Phase::Calibrate => eprintln!("measuring the original: matched head and reference logits…"),
         Phase::Finetune => {
             if let Some(s) = p.log
                 && (s.step % every == 0 || s.step == 1)

@@ -364,7 +364,8 @@ impl HiddenDecoder {
         self.linear.forward(pooled)
     }
 
-    fn pooled_band(&self, band: Tensor<4>) -> Tensor<2> {
+    /// Pooled features `[B, F]` of a centred LL band ([`decoder_input`]).
+    pub fn pooled_band(&self, band: Tensor<4>) -> Tensor<2> {
         let mut x = if self.input_gain == 1.0 {
             band
         } else {

@@ -14,6 +14,8 @@ use serde::{Deserialize, Serialize};
 use crate::attack::diff::EotRng;
 use crate::decoder::WatermarkModel;
 use crate::decoder::artifact::rgb8_tensor;
+use crate::decoder::dwt::ll_size;
+use crate::decoder::model::decoder_input;
 use crate::decoder::projection::ViewProjection;
 use crate::render::{self, RenderOptions};
 use crate::scene::bounds::robust_bounds;
@@ -144,7 +146,14 @@ pub fn fit_projection(
 
 /// G of eq. `matchedhead`: Σ over the pixels of the original's renders through `cameras` of
 /// J_pᵀ·J_p, J_p the Jacobian of `model`'s pooled features at pixel p (F × 3), averaged over
-/// the views; F × F row-major. One backward pass per feature, batched.
+/// the views; F × F row-major.
+///
+/// The decoder reads the image only through its centred LL band u = D·x ([`decoder_input`]:
+/// the mean of each 2^L × 2^L block, edge-padded, times 2, minus 1), and D's rows have disjoint
+/// supports, so D·Dᵀ is diagonal and G = Σ_q d_q·J_qᵀ·J_q over the band's entries q (J_q the
+/// Jacobian with respect to u_q, d_q = Σ_p D_qp² — 4/4^L inside the image, more where the edge
+/// padding repeats pixels). The Jacobian is taken on the band, 4^L times smaller than the image:
+/// one backward pass per feature, batched.
 pub fn decoder_gain(
     original: &Gaussians,
     cameras: &[Camera],
@@ -154,23 +163,25 @@ pub fn decoder_gain(
     use burn::tensor::Tensor;
     let device = burn::tensor::Device::flex().autodiff();
     let f = model.decoder.feature_count();
+    let levels = model.decoder.dwt_levels();
     let mut gain = vec![0.0f64; f * f];
     let views = cameras.len().max(1) as f64;
     for c in cameras {
         let r = render::render(original, c, opts)?;
         let img = render::to_rgb8(r.width, r.height, &r.image);
-        let x0 = rgb8_tensor(&img, &device);
-        let [_, ch, h, w] = x0.dims();
+        let band = decoder_input(rgb8_tensor(&img, &device), levels);
+        let [_, ch, h, w] = band.dims();
         let n = ch * h * w;
-        // Row j: ∂f_j/∂x, the whole image.
-        let mut rows: Vec<Vec<f32>> = Vec::with_capacity(f);
-        // Batches small enough for the decoder's [B, F, h/4, w/4] features at 800².
-        let chunk = (4_000_000 / (f * (h * w / 16).max(1))).clamp(1, f);
+        let root_d = band_weights(r.height as usize, r.width as usize, levels);
+        // Row j: ∂f_j/∂u·√d, the whole band.
+        let mut rows: Vec<Vec<f64>> = Vec::with_capacity(f);
+        // Batches of the decoder's [B, F, h, w] features of at most 16 M values.
+        let chunk = (16_000_000 / (f * h * w).max(1)).clamp(1, f);
         let mut j0 = 0;
         while j0 < f {
             let b = chunk.min(f - j0);
-            let x = x0.clone().repeat_dim(0, b).require_grad();
-            let p = model.decoder.pooled(x.clone()); // [b, F]
+            let x = band.clone().repeat_dim(0, b).require_grad();
+            let p = model.decoder.pooled_band(x.clone()); // [b, F]
             // Σ_i p[i, j0 + i]: the batch row i back-propagates feature j0 + i alone.
             let mut sel = vec![0.0f32; b * f];
             for i in 0..b {
@@ -182,7 +193,12 @@ pub fn decoder_gain(
                 .grad(&grads)
                 .and_then(|t| t.try_into_vec_as::<f32>().ok())
                 .unwrap_or_else(|| vec![0.0; b * n]);
-            rows.extend(d.chunks_exact(n).map(<[f32]>::to_vec));
+            rows.extend(d.chunks_exact(n).map(|row| {
+                row.iter()
+                    .enumerate()
+                    .map(|(k, &v)| f64::from(v) * root_d[k % (h * w)])
+                    .collect()
+            }));
             j0 += b;
         }
         for i in 0..f {
@@ -190,7 +206,7 @@ pub fn decoder_gain(
                 let v: f64 = rows[i]
                     .iter()
                     .zip(&rows[j])
-                    .map(|(&a, &b)| f64::from(a) * f64::from(b))
+                    .map(|(a, b)| a * b)
                     .sum::<f64>()
                     / views;
                 gain[i * f + j] += v;
@@ -201,6 +217,35 @@ pub fn decoder_gain(
         }
     }
     Ok(gain)
+}
+
+/// √d_q of [`decoder_gain`] for each entry of the LL band (row-major, `ll_size`) of a
+/// `height × width` image: d_q = Σ_p D_qp² with D_qp = 2·m_p / 4^L, m_p the number of times
+/// pixel p fills the block of q after edge padding.
+fn band_weights(height: usize, width: usize, levels: usize) -> Vec<f64> {
+    let s = 1usize << levels;
+    let [bh, bw] = ll_size(height, width, levels);
+    // Σ over a block's rows (columns) of the squared multiplicities of the real rows.
+    let sums = |len: usize, blocks: usize| -> Vec<f64> {
+        (0..blocks)
+            .map(|i| {
+                let mut m = vec![0usize; len];
+                for r in i * s..(i + 1) * s {
+                    m[r.min(len - 1)] += 1;
+                }
+                m.iter().map(|&k| (k * k) as f64).sum()
+            })
+            .collect()
+    };
+    let (rows, cols) = (sums(height, bh), sums(width, bw));
+    let c = 4.0 / (s as f64).powi(4);
+    let mut out = Vec::with_capacity(bh * bw);
+    for r in &rows {
+        for q in &cols {
+            out.push((c * r * q).sqrt());
+        }
+    }
+    out
 }
 
 /// `cfg.nuisance` samples of what a dispute may hold besides a clean view, as `model`'s pooled
@@ -352,6 +397,79 @@ mod tests {
             assert!(lit > 20, "{} sees {lit} lit pixels", c.name);
         }
         assert_ne!(cams[4], cams[0]);
+    }
+
+    /// G straight from its definition: the Jacobian of the pooled features with respect to
+    /// every pixel of the 8-bit render, one backward pass per feature.
+    fn gain_by_pixels(
+        g: &Gaussians,
+        cameras: &[Camera],
+        model: &WatermarkModel,
+        opts: &RenderOptions,
+    ) -> Vec<f64> {
+        use burn::tensor::{Tensor, TensorData};
+        let device = burn::tensor::Device::flex().autodiff();
+        let f = model.decoder.feature_count();
+        let mut gain = vec![0.0f64; f * f];
+        for c in cameras {
+            let r = render::render(g, c, opts).unwrap();
+            let img = render::to_rgb8(r.width, r.height, &r.image);
+            let x0 = rgb8_tensor(&img, &device);
+            let rows: Vec<Vec<f32>> = (0..f)
+                .map(|j| {
+                    let x = x0.clone().require_grad();
+                    let mut sel = vec![0.0f32; f];
+                    sel[j] = 1.0;
+                    let sel = Tensor::<2>::from_data(TensorData::new(sel, [1, f]), &device);
+                    let grads = (model.decoder.pooled(x.clone()) * sel).sum().backward();
+                    x.grad(&grads).unwrap().try_into_vec_as::<f32>().unwrap()
+                })
+                .collect();
+            for i in 0..f {
+                for j in 0..f {
+                    gain[i * f + j] += rows[i]
+                        .iter()
+                        .zip(&rows[j])
+                        .map(|(&a, &b)| f64::from(a) * f64::from(b))
+                        .sum::<f64>()
+                        / cameras.len() as f64;
+                }
+            }
+        }
+        gain
+    }
+
+    #[test]
+    fn the_gain_taken_on_the_band_equals_the_gain_over_the_pixels() {
+        let g = object_scene(400, 0, 3);
+        let device = burn::tensor::Device::flex();
+        let model = WatermarkModel::shipped(32, &device).unwrap();
+        let opts = RenderOptions::default();
+        // 30 × 22 is not a multiple of the band's 4 × 4 blocks: the edge padding counts too.
+        for (width, height) in [(32, 24), (30, 22)] {
+            let cams = orbit_cameras(
+                &g,
+                &OrbitOptions {
+                    count: 2,
+                    width,
+                    height,
+                    ..OrbitOptions::default()
+                },
+            )
+            .unwrap();
+            let fast = decoder_gain(&g, &cams, &model, &opts).unwrap();
+            let slow = gain_by_pixels(&g, &cams, &model, &opts);
+            let scale = slow.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+            assert!(scale > 0.0);
+            let worst = fast
+                .iter()
+                .zip(&slow)
+                .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
+            assert!(
+                worst < 1e-4 * scale,
+                "{width}×{height}: worst difference {worst:e} of {scale:e}"
+            );
+        }
     }
 
     #[test]

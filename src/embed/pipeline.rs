@@ -139,6 +139,8 @@ impl EmbedOptions {
 pub enum Phase {
     Targets,
     Plan,
+    /// The matched head and the reference logits, measured on the original.
+    Calibrate,
     Finetune,
     Done,
 }
@@ -175,6 +177,10 @@ pub enum EmbedError {
 pub struct Timings {
     pub targets: f64,
     pub plan: f64,
+    /// Fitting the matched head (or view projection) and the reference logits on the original.
+    #[serde(default)]
+    pub calibrate: f64,
+    /// The finetuning steps themselves.
     pub finetune: f64,
     pub total: f64,
 }
@@ -286,6 +292,7 @@ pub fn embed(
     let p = plan(g, cameras, message.len(), &cfg)?;
     let t_plan = t.elapsed().as_secs_f64();
 
+    report_phase(&mut progress, Phase::Calibrate)?;
     let t = Instant::now();
     let projection = if opts.projection.is_on() {
         let mut plain = model.clone();
@@ -316,6 +323,10 @@ pub fn embed(
         }
         None => model,
     };
+    let t_calibrate = t.elapsed().as_secs_f64();
+
+    report_phase(&mut progress, Phase::Finetune)?;
+    let t = Instant::now();
     let ft = finetune(
         p.scene(),
         &p.masks,
@@ -372,6 +383,7 @@ pub fn embed(
         timings: Timings {
             targets: t_targets,
             plan: t_plan,
+            calibrate: t_calibrate,
             finetune: t_ft,
             total: t_all.elapsed().as_secs_f64(),
         },

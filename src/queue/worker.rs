@@ -155,6 +155,7 @@ fn update(p: &Progress, started: &mut Option<Instant>) -> ProgressUpdate {
     let phase = match p.phase {
         Phase::Targets => "targets",
         Phase::Plan => "plan",
+        Phase::Calibrate => "calibrate",
         Phase::Finetune => "finetune",
         Phase::Done => "publish",
     };
@@ -165,7 +166,9 @@ fn update(p: &Progress, started: &mut Option<Instant>) -> ProgressUpdate {
         }
         _ => None,
     };
-    if p.phase == Phase::Plan || (p.phase == Phase::Finetune && started.is_none()) {
+    // The steps' clock starts when finetuning does (its step-0 report), so the ETA counts
+    // steps only.
+    if p.phase != Phase::Finetune || p.step == 0 || started.is_none() {
         *started = Some(Instant::now());
     }
     ProgressUpdate {

@@ -484,6 +484,25 @@ pub fn markdown(report: &QualityReport) -> String {
             s += &format!("- {}, {} bits: {}\n", r.scene, r.bits, views.join("; "));
         }
     }
+    let costs: Vec<String> = report
+        .runs
+        .iter()
+        .filter_map(|r| {
+            let parts: Vec<String> = r
+                .eval
+                .rows
+                .iter()
+                .filter_map(|x| Some(format!("{} {:.1} dB", x.name, x.psnr_vs_original?)))
+                .collect();
+            (!parts.is_empty())
+                .then(|| format!("- {}, {} bits: {}", r.scene, r.bits, parts.join("; ")))
+        })
+        .collect();
+    if !costs.is_empty() {
+        s += "\nWhat each model attack costs the asset (PSNR of the attacked copy against the original, unseen views):\n\n";
+        s += &costs.join("\n");
+        s += "\n";
+    }
     s
 }
 
@@ -523,6 +542,7 @@ mod tests {
             p_value: 0.5,
             detected,
             detection_rate_per_view: 0.0,
+            psnr_vs_original: None,
         }
     }
 

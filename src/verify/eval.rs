@@ -55,6 +55,11 @@ pub struct Row {
     pub detected: bool,
     /// Share of the views detected each on its own at the same false-positive rate.
     pub detection_rate_per_view: f64,
+    /// Model attacks: mean PSNR (dB) of the attacked copy's renders against the original's —
+    /// what the attack costs the asset (an attack that ruins the asset needs no watermark to
+    /// fail on it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub psnr_vs_original: Option<f64>,
 }
 
 /// The evaluation of one watermarked scene.
@@ -186,6 +191,7 @@ fn row_of_logits(
         p_value: d.p_value,
         detected: d.detected,
         detection_rate_per_view: alone as f64 / logits.len() as f64,
+        psnr_vs_original: None,
     })
 }
 
@@ -289,7 +295,15 @@ pub fn evaluate_scene(
     for (name, a) in ModelAttack::paper_protocol(seed) {
         let g = a.apply(marked)?;
         let imgs = render_views(&g, cams, opts)?;
-        rows.push(row(&name, "model", &imgs, model, message, fpr, &device)?);
+        let mut r = row(&name, "model", &imgs, model, message, fpr, &device)?;
+        r.psnr_vs_original = Some(
+            orig.iter()
+                .zip(&imgs)
+                .map(|(a, b)| psnr_u8(a, b))
+                .sum::<f64>()
+                / n,
+        );
+        rows.push(r);
     }
     Ok(SceneEval {
         views: cams.len(),
