@@ -13,7 +13,7 @@ use tokio::task::JoinHandle;
 use crate::config::Config;
 use crate::http::{AppState, Decoders, Metrics, router};
 use crate::queue::{Pool, WorkerSpec, plan_workers, start};
-use crate::store::{MasterKey, Scope, Store};
+use crate::store::{DataDirLock, LockMode, MasterKey, Scope, Store};
 
 /// A running service.
 pub struct App {
@@ -25,6 +25,8 @@ pub struct App {
     shutdown: watch::Sender<bool>,
     server: JoinHandle<std::io::Result<()>>,
     pool: Pool,
+    /// Held shared while the app runs: no master-key rotation beside it (`store::lock`).
+    _lock: DataDirLock,
 }
 
 impl App {
@@ -38,6 +40,7 @@ impl App {
         cfg.validate()?;
         std::fs::create_dir_all(&cfg.data_dir)
             .with_context(|| format!("cannot create {}", cfg.data_dir.display()))?;
+        let lock = DataDirLock::acquire(&cfg.data_dir, LockMode::Shared)?;
         let store = Store::open(&cfg.data_dir, master)
             .await
             .with_context(|| format!("cannot open the store in {}", cfg.data_dir.display()))?;
@@ -94,6 +97,7 @@ impl App {
             shutdown,
             server,
             pool,
+            _lock: lock,
         })
     }
 

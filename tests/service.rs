@@ -2066,3 +2066,48 @@ async fn a_hostile_corpus_gets_4xx_problems_stores_nothing_and_keeps_memory_flat
     }
     t.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_master_key_is_not_rotated_beside_a_running_server() {
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = config(dir.path());
+    let master = MasterKey::generate().to_hex();
+    let mut t = TestApp::boot(dir, cfg.clone(), master.clone(), Some(vec![])).await;
+    let new_key = t.dir.path().join("new.key");
+    let rotate = || {
+        std::process::Command::new(env!("CARGO_BIN_EXE_splatmark"))
+            .args(["keys", "rotate-master", "--data-dir"])
+            .arg(&cfg.data_dir)
+            .arg("--new-key-file")
+            .arg(&new_key)
+            .env("SPLATMARK_MASTER_KEY", &master)
+            .output()
+            .unwrap()
+    };
+    let refused = rotate();
+    let err = String::from_utf8_lossy(&refused.stderr);
+    assert!(!refused.status.success(), "rotated beside a live server");
+    assert!(err.contains("in use by another splatmark process"), "{err}");
+    assert!(!new_key.exists(), "a refused rotation writes no key");
+    // The server keeps working under its key.
+    let k = t.keys().await;
+    assert!(!k.owner.is_empty());
+    t.stop().await;
+    // Stopped: the rotation runs.
+    let done = rotate();
+    assert!(
+        done.status.success(),
+        "{}",
+        String::from_utf8_lossy(&done.stderr)
+    );
+    // A new key, written where asked, even though the current one comes from the environment.
+    let written = std::fs::read_to_string(&new_key).unwrap();
+    assert_eq!(written.trim().len(), 64);
+    assert_ne!(written.trim(), master);
+    let store =
+        splatmark::store::Store::open(&cfg.data_dir, MasterKey::from_hex(written.trim()).unwrap())
+            .await
+            .unwrap();
+    assert!(store.verify_audit_chain().await.unwrap().ok);
+    store.close().await;
+}

@@ -244,6 +244,9 @@ fn rotate_master_cmd(new_key_file: Option<&std::path::Path>, serve: &ServeArgs) 
         "no database in {}",
         cfg.data_dir.display()
     );
+    // No server may run beside a rotation: it would go on sealing under the old key.
+    let _lock =
+        crate::store::DataDirLock::acquire(&cfg.data_dir, crate::store::LockMode::Exclusive)?;
     let from_env = std::env::var_os(crate::store::MASTER_KEY_ENV).is_some();
     let current_file = cfg.master_key_path();
     anyhow::ensure!(
@@ -271,7 +274,7 @@ fn rotate_master_cmd(new_key_file: Option<&std::path::Path>, serve: &ServeArgs) 
         staged.display()
     );
     let old = crate::app::master_key(&cfg)?;
-    let new = crate::store::MasterKey::load_or_create(&staged)
+    let new = crate::store::MasterKey::load_or_create_file(&staged)
         .with_context(|| format!("cannot write the new key {}", staged.display()))?;
     runtime()?.block_on(async {
         let store = Store::open(&cfg.data_dir, old).await?;

@@ -54,6 +54,13 @@ impl MasterKey {
         if let Ok(hex) = std::env::var(MASTER_KEY_ENV) {
             return Self::from_hex(&hex);
         }
+        Self::load_or_create_file(file)
+    }
+
+    /// The key in `file`, else a new key written there as [`Self::load_or_create`] does — never
+    /// the environment's (a rotation's new key must be new even where `SPLATMARK_MASTER_KEY`
+    /// holds the current one).
+    pub fn load_or_create_file(file: &Path) -> Result<Self> {
         match std::fs::read_to_string(file) {
             Ok(text) => {
                 warn_if_readable_by_others(file);

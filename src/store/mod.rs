@@ -27,6 +27,7 @@ pub(crate) mod crypto;
 mod error;
 pub(crate) mod jobs;
 mod keys;
+mod lock;
 mod publish;
 mod time;
 mod verifications;
@@ -46,6 +47,7 @@ pub use jobs::{
     ProgressUpdate, backoff,
 };
 pub use keys::{MAX_MESSAGE_BITS, Registration, WatermarkKey};
+pub use lock::{DataDirLock, LOCK_FILE, LockError, LockMode};
 pub use time::normalize_timestamp;
 pub use verifications::NewVerification;
 
