@@ -113,6 +113,11 @@ pub fn render_views(
         .collect()
 }
 
+/// Mean over views of each pair's PSNR (dB).
+fn mean_psnr(a: &[RgbImage], b: &[RgbImage]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| psnr_u8(x, y)).sum::<f64>() / a.len() as f64
+}
+
 fn psnr_u8(a: &RgbImage, b: &RgbImage) -> f64 {
     let n = a.as_raw().len() as f64;
     let mse = a
@@ -238,12 +243,7 @@ pub fn evaluate_scene(
     let orig = render_views(original, cams, opts)?;
     let mark = render_views(marked, cams, opts)?;
     let n = cams.len() as f64;
-    let psnr = orig
-        .iter()
-        .zip(&mark)
-        .map(|(a, b)| psnr_u8(a, b))
-        .sum::<f64>()
-        / n;
+    let psnr = mean_psnr(&orig, &mark);
     let ssim_mean = orig
         .iter()
         .zip(&mark)
@@ -296,13 +296,7 @@ pub fn evaluate_scene(
         let g = a.apply(marked)?;
         let imgs = render_views(&g, cams, opts)?;
         let mut r = row(&name, "model", &imgs, model, message, fpr, &device)?;
-        r.psnr_vs_original = Some(
-            orig.iter()
-                .zip(&imgs)
-                .map(|(a, b)| psnr_u8(a, b))
-                .sum::<f64>()
-                / n,
-        );
+        r.psnr_vs_original = Some(mean_psnr(&orig, &imgs));
         rows.push(r);
     }
     Ok(SceneEval {
