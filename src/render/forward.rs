@@ -225,6 +225,40 @@ pub fn render<T: Real>(
     camera: &Camera,
     opts: &RenderOptions,
 ) -> Result<Rendered<T>, RenderError> {
+    render_recording(g, camera, opts, false).map(|(r, _)| r)
+}
+
+/// The contributions one tile composited, in compositing order: for each of the tile's entries
+/// that reached a pixel, its index `j` in the tile's entry list and the end of its run in `pix`
+/// / `w` (the pixel within the tile and the weight α·T it was composited with).
+#[derive(Default)]
+pub(crate) struct TileRecord<T> {
+    pub runs: Vec<(u32, u32)>,
+    pub pix: Vec<u8>,
+    pub w: Vec<T>,
+}
+
+impl<T> TileRecord<T> {
+    #[inline(always)]
+    fn push(&mut self, j: u32, p: u8, w: T) {
+        let end = self.pix.len() as u32 + 1;
+        match self.runs.last_mut() {
+            Some(run) if run.0 == j => run.1 = end,
+            _ => self.runs.push((j, end)),
+        }
+        self.pix.push(p);
+        self.w.push(w);
+    }
+}
+
+/// [`render`], also returning every tile's [`TileRecord`] when `record` is set (empty ones
+/// otherwise).
+pub(crate) fn render_recording<T: Real>(
+    g: &Gaussians<T>,
+    camera: &Camera,
+    opts: &RenderOptions,
+    record: bool,
+) -> Result<(Rendered<T>, Vec<TileRecord<T>>), RenderError> {
     check_inputs(g, camera, opts)?;
     let cam = Cam::<T>::new(camera, opts.near);
     let overrides = opts.colors.as_deref();
@@ -285,7 +319,7 @@ pub fn render<T: Real>(
         final_t: Vec::new(),
         n_contrib: Vec::new(),
     };
-    {
+    let records: Vec<TileRecord<T>> = {
         let st = &state;
         color
             .par_chunks_mut(px)
@@ -293,8 +327,17 @@ pub fn render<T: Real>(
             .zip(n_contrib.par_chunks_mut(px))
             .zip(weight_slices)
             .enumerate()
-            .for_each(|(t, (((c, tt), n), w))| raster_tile(st, t, c, tt, n, w));
-    }
+            .map(|(t, (((c, tt), n), w))| {
+                let mut rec = TileRecord::default();
+                if record {
+                    raster_tile(st, t, c, tt, n, w, |j, p, w| rec.push(j as u32, p as u8, w));
+                } else {
+                    raster_tile(st, t, c, tt, n, w, |_, _, _| {});
+                }
+                rec
+            })
+            .collect()
+    };
 
     // Tile-major → row-major, adding the background behind what is left of T.
     let (w, h) = (state.cam.width, state.cam.height);
@@ -317,14 +360,17 @@ pub fn render<T: Real>(
     };
     state.final_t = final_t;
     state.n_contrib = n_contrib;
-    Ok(Rendered {
-        width: w as u32,
-        height: h as u32,
-        image,
-        blend_weights,
-        stats,
-        state,
-    })
+    Ok((
+        Rendered {
+            width: w as u32,
+            height: h as u32,
+            image,
+            blend_weights,
+            stats,
+            state,
+        },
+        records,
+    ))
 }
 
 /// Groups splats by the tiles their rectangles touch, keeping depth order within each tile.
@@ -391,6 +437,8 @@ fn reduce_weights<T: Real>(st: &State<T>, per_entry: &[T]) -> Vec<T> {
     out
 }
 
+/// Composites tile `t`; `sink(j, p, w)` sees every contribution (entry j of the tile, pixel p
+/// within it, weight α·T) in compositing order.
 fn raster_tile<T: Real>(
     st: &State<T>,
     t: usize,
@@ -398,6 +446,7 @@ fn raster_tile<T: Real>(
     trans_out: &mut [T],
     n_contrib_out: &mut [u32],
     weights: &mut [T],
+    mut sink: impl FnMut(usize, usize, T),
 ) {
     const N: usize = TILE * TILE;
     let tile = st.tile_rect(t);
@@ -439,6 +488,7 @@ fn raster_tile<T: Real>(
                 return;
             }
             let w = alpha * t_p;
+            sink(j, p, w);
             for (c, sc) in color[p].iter_mut().zip(s.color) {
                 *c = *c + sc * w;
             }

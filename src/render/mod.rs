@@ -16,10 +16,12 @@
 mod backward;
 mod forward;
 mod project;
+mod replay;
 pub mod sh;
 
 pub use backward::{Gradients, backward};
 pub use forward::{RenderStats, Rendered, render};
+pub use replay::Replay;
 
 use crate::scene::Camera;
 use std::sync::Arc;

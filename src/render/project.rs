@@ -181,8 +181,15 @@ fn view_dir<T: Real>(m: [T; 3], cam: &Cam<T>) -> ([T; 3], T) {
     (v.map(|x| x / len), len)
 }
 
+/// Gaussian `i`'s colour along the view direction: SH of degree `deg` + 0.5, clamped at 0
+/// (and which channels were clamped).
 #[inline]
-fn sh_color<T: Real>(g: &Gaussians<T>, i: usize, cam: &Cam<T>, deg: u8) -> ([T; 3], [bool; 3]) {
+pub(crate) fn sh_color<T: Real>(
+    g: &Gaussians<T>,
+    i: usize,
+    cam: &Cam<T>,
+    deg: u8,
+) -> ([T; 3], [bool; 3]) {
     let dc = g.sh_dc[i];
     let c0 = T::c(0.282_094_791_773_878_1);
     let mut col = [c0 * dc[0], c0 * dc[1], c0 * dc[2]];
@@ -305,31 +312,26 @@ pub(crate) struct ParamGrad<T> {
     pub dc: [T; 3],
 }
 
-/// Back-propagates screen-space gradients of Gaussian `i` to its parameters; the SH-rest
-/// gradient is written into `rest_out` (length `g.rest_len()`).
-pub(crate) fn project_backward<T: Real>(
+/// Back-propagates ∂L/∂colour of Gaussian `i` (the colour [`sh_color`] gave, `clamped` its
+/// clamp flags) to its SH coefficients: returns ∂L/∂DC and ∂L/∂mean through the view
+/// direction, and writes ∂L/∂SH-rest into `rest_out` (length `g.rest_len()`).
+pub(crate) fn colour_backward<T: Real>(
     g: &Gaussians<T>,
     i: usize,
     cam: &Cam<T>,
     sh_degree: u8,
-    p: &Projection<T>,
-    sg: &ScreenGrad<T>,
+    clamped: [bool; 3],
+    d_colour: [T; 3],
     rest_out: &mut [T],
-) -> ParamGrad<T> {
+) -> ([T; 3], [T; 3]) {
     let zero = T::zero();
-    let one = T::one();
-    let two = T::c(2.0);
-    let w = &cam.w;
-    let m = g.means[i];
     let mut d_mean = [zero; 3];
-
-    // Colour → SH coefficients and view direction.
-    let dcol: [T; 3] = std::array::from_fn(|ch| if p.clamped[ch] { zero } else { sg.color[ch] });
+    let dcol: [T; 3] = std::array::from_fn(|ch| if clamped[ch] { zero } else { d_colour[ch] });
     let c0 = T::c(0.282_094_791_773_878_1);
     let d_dc = dcol.map(|v| c0 * v);
     rest_out.iter_mut().for_each(|v| *v = zero);
     if sh_degree > 0 {
-        let (d, len) = view_dir(m, cam);
+        let (d, len) = view_dir(g.means[i], cam);
         let b = sh::basis(sh_degree, d);
         let bg = sh::basis_grad(sh_degree, d);
         let rest = g.rest_of(i);
@@ -349,6 +351,27 @@ pub(crate) fn project_backward<T: Real>(
             d_mean[a] = d_mean[a] + (d_dir[a] - d[a] * dd) / len;
         }
     }
+    (d_dc, d_mean)
+}
+
+/// Back-propagates screen-space gradients of Gaussian `i` to its parameters; the SH-rest
+/// gradient is written into `rest_out` (length `g.rest_len()`).
+pub(crate) fn project_backward<T: Real>(
+    g: &Gaussians<T>,
+    i: usize,
+    cam: &Cam<T>,
+    sh_degree: u8,
+    p: &Projection<T>,
+    sg: &ScreenGrad<T>,
+    rest_out: &mut [T],
+) -> ParamGrad<T> {
+    let zero = T::zero();
+    let one = T::one();
+    let two = T::c(2.0);
+    let w = &cam.w;
+
+    // Colour → SH coefficients and view direction.
+    let (d_dc, mut d_mean) = colour_backward(g, i, cam, sh_degree, p.clamped, sg.color, rest_out);
 
     // Opacity through the sigmoid.
     let d_logit = sg.opacity * p.opacity * (one - p.opacity);

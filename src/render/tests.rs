@@ -595,3 +595,128 @@ fn color_override_equals_sh0_colour_and_checks_its_length() {
         Err(RenderError::BadScene(_))
     ));
 }
+
+/// A scene of `n` Gaussians dense enough that pixels see many of them, and a camera bigger than
+/// one tile (so tiles, runs and the early stop at T ≤ 1e-4 are all exercised).
+fn replay_scene(seed: u64, n: usize) -> (Gaussians<f32>, Camera) {
+    let mut rng = Lcg(seed);
+    let mut g = random_scene(&mut rng, n, 3).cast(|v| v as f32);
+    for o in &mut g.opacity_logits {
+        *o += 2.0; // opaque enough that some pixels stop early
+    }
+    let rot = Mat3::from_euler(glam::EulerRot::XYZ, 0.1, -0.15, 0.05);
+    let cam = Camera::from_pose("replay", 70, 52, 60.0, 62.0, 35.2, 25.9, rot, Vec3::ZERO);
+    (g, cam)
+}
+
+/// New colours for every Gaussian: DC and SH-rest moved, some channels pushed below the clamp.
+fn recolour(g: &Gaussians<f32>, seed: u64) -> Gaussians<f32> {
+    let mut rng = Lcg(seed);
+    let mut h = g.clone();
+    for dc in &mut h.sh_dc {
+        for v in dc.iter_mut() {
+            *v += rng.range(-3.0, 1.0) as f32;
+        }
+    }
+    for v in &mut h.sh_rest {
+        *v += rng.range(-0.2, 0.2) as f32;
+    }
+    h
+}
+
+#[test]
+fn a_replay_renders_new_colours_bit_identically_to_the_rasterizer() {
+    let (g, cam) = replay_scene(21, 400);
+    let opts = RenderOptions {
+        background: [0.1, 0.5, 0.9],
+        ..Default::default()
+    };
+    let replay = Replay::record(&g, &cam, &opts).unwrap();
+    assert_eq!(
+        replay.render(&g).unwrap(),
+        render(&g, &cam, &opts).unwrap().image
+    );
+    let h = recolour(&g, 5);
+    let fresh = render(&h, &cam, &opts).unwrap().image;
+    assert_ne!(fresh, render(&g, &cam, &opts).unwrap().image);
+    assert_eq!(replay.render(&h).unwrap(), fresh);
+    assert!(
+        replay.contributions() > 70 * 52,
+        "pixels see several Gaussians"
+    );
+}
+
+#[test]
+fn a_replays_colour_gradient_is_the_rasterizers_and_its_geometry_gradient_is_zero() {
+    let (g, cam) = replay_scene(22, 300);
+    let opts = RenderOptions::default();
+    let h = recolour(&g, 6);
+    let replay = Replay::record(&g, &cam, &opts).unwrap();
+    let mut rng = Lcg(7);
+    let d: Vec<[f32; 3]> = (0..70 * 52)
+        .map(|_| std::array::from_fn(|_| rng.range(-1.0, 1.0) as f32))
+        .collect();
+    let ours = replay.backward(&h, &d).unwrap();
+    let theirs = backward(&h, &render(&h, &cam, &opts).unwrap(), &d)
+        .unwrap()
+        .params;
+    let (a, b): (Vec<f32>, Vec<f32>) = (
+        ours.sh_dc
+            .iter()
+            .flatten()
+            .chain(&ours.sh_rest)
+            .copied()
+            .collect(),
+        theirs
+            .sh_dc
+            .iter()
+            .flatten()
+            .chain(&theirs.sh_rest)
+            .copied()
+            .collect(),
+    );
+    let scale = b.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+    assert!(scale > 0.1, "the loss reaches the colours");
+    for (x, y) in a.iter().zip(&b) {
+        assert!((x - y).abs() <= 1e-5 * scale, "{x} vs {y} (scale {scale})");
+    }
+    let geometry = ours
+        .means
+        .iter()
+        .chain(&ours.log_scales)
+        .flatten()
+        .chain(ours.rotations.iter().flatten())
+        .chain(&ours.opacity_logits);
+    assert!(geometry.copied().all(|v| v == 0.0));
+}
+
+#[test]
+fn a_replay_refuses_moved_geometry_colour_overrides_and_wrong_gradients() {
+    let (g, cam) = replay_scene(23, 50);
+    let opts = RenderOptions::default();
+    let replay = Replay::record(&g, &cam, &opts).unwrap();
+    let mut moved = g.clone();
+    moved.means[7][0] += 1e-3;
+    assert!(matches!(
+        replay.render(&moved),
+        Err(RenderError::BadScene(_))
+    ));
+    let mut faded = g.clone();
+    faded.opacity_logits[3] -= 0.5;
+    assert!(matches!(
+        replay.backward(&faded, &vec![[0.0; 3]; 70 * 52]),
+        Err(RenderError::BadScene(_))
+    ));
+    assert!(matches!(
+        replay.backward(&g, &[[0.0; 3]; 10]),
+        Err(RenderError::GradientSize { .. })
+    ));
+    let overridden = RenderOptions {
+        colors: Some(vec![[0.5f32; 3]; g.len()].into()),
+        ..Default::default()
+    };
+    assert!(matches!(
+        Replay::record(&g, &cam, &overridden),
+        Err(RenderError::BadScene(_))
+    ));
+}

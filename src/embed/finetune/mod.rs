@@ -35,8 +35,13 @@
 //!   [`FinetuneConfig::paper`].
 //!
 //! Per Gaussian, the finetuning also accumulates the norm of its (ungated) ∂L_wm over all
-//! steps; normalised to sum 1 this is its share of the watermark gradient in the attribution
+//! steps — over the parameters that move: the SH coefficients when the geometry is fixed —;
+//! normalised to sum 1 this is its share of the watermark gradient in the attribution
 //! records — a direct check that the watermark loss "lives" on the carriers SBAG chose.
+//!
+//! When no step moves the geometry (colour-only learning rates, the default), each training
+//! view is rendered and back-propagated through its [`crate::render::Replay`]: the same
+//! images, bit for bit, without rasterising (docs/BENCHMARKS.md, "Embedding").
 
 use std::ops::ControlFlow;
 use std::time::Instant;
@@ -47,21 +52,26 @@ use serde::{Deserialize, Serialize};
 use super::mask::Masks;
 use crate::attack::diff::{DiffAttack, DiffAttackError, EotRng, random_composition};
 use crate::decoder::WatermarkModel;
-use crate::decoder::eval::decode_images;
-use crate::render::{self, RenderError, RenderOptions};
-use crate::scene::{Camera, Gaussians};
+use crate::render::RenderError;
+use crate::scene::Gaussians;
 
 mod config;
 mod losses;
 mod optim;
 #[cfg(test)]
 mod tests;
+mod views;
+mod visual;
 
 pub use config::{FinetuneConfig, LearningRates, LossWeights, StepRule};
 pub use losses::ssim;
 use losses::{Margin, as_saved, band_l1, from_planar, to_tensor, views_bce};
 pub use optim::ROUTE_CLIP;
 use optim::{Adam, RouteMomentum};
+pub(crate) use views::views_logits;
+use views::{Renderer, views_psnr};
+pub use views::{View, ViewsCheck, target_views};
+use visual::visual_loss;
 
 /// Why finetuning failed.
 #[derive(Debug, thiserror::Error)]
@@ -88,36 +98,6 @@ pub enum FinetuneError {
     Cancelled { step: usize },
     #[error("invalid finetuning options: {0}")]
     Invalid(String),
-}
-
-/// A training view: camera and the original scene's render through it.
-#[derive(Clone, Debug)]
-pub struct View {
-    pub camera: Camera,
-    /// Linear RGB, row-major, clamped to [0, 1].
-    pub target: Vec<[f32; 3]>,
-}
-
-/// Renders the targets (the original scene through each camera, clamped to [0, 1]).
-pub fn target_views(
-    original: &Gaussians,
-    cameras: &[Camera],
-    opts: &RenderOptions,
-) -> Result<Vec<View>, RenderError> {
-    cameras
-        .iter()
-        .map(|c| {
-            let r = render::render(original, c, opts)?;
-            Ok(View {
-                camera: c.clone(),
-                target: r
-                    .image
-                    .iter()
-                    .map(|p| p.map(|v| v.clamp(0.0, 1.0)))
-                    .collect(),
-            })
-        })
-        .collect()
 }
 
 /// Numbers of one step.
@@ -158,77 +138,15 @@ pub struct Finetuned {
     pub seconds: f64,
 }
 
-/// How the training views decode, as a dispute decodes them: each rendered at 8 bits, logits
-/// averaged over all of them.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct ViewsCheck {
-    /// After this many steps.
-    pub step: usize,
-    /// Bits equal to the message's.
-    pub matches: usize,
-    pub bits: usize,
-    /// Smallest |averaged logit| over the bits.
-    pub min_abs_logit: f32,
-}
-
-/// The logits of the training views of `g` as a dispute decodes them: each rendered to an
-/// 8-bit image, decoded and the logits averaged ([`decode_images`], what `/v1/verify` runs).
-pub(crate) fn views_logits(
-    g: &Gaussians,
-    views: &[View],
-    model: &WatermarkModel,
-    opts: &RenderOptions,
-) -> Result<Vec<f32>, FinetuneError> {
-    let images = views
-        .iter()
-        .map(|v| {
-            let r = render::render(g, &v.camera, opts)?;
-            Ok(render::to_rgb8(r.width, r.height, &r.image))
-        })
-        .collect::<Result<Vec<_>, RenderError>>()?;
-    Ok(decode_images(model, &images, &Device::flex().autodiff()).logits)
-}
-
-impl ViewsCheck {
-    fn new(step: usize, logits: &[f32], message: &[bool]) -> Self {
-        Self {
-            step,
-            matches: logits
-                .iter()
-                .zip(message)
-                .filter(|&(&z, &m)| (z > 0.0) == m)
-                .count(),
-            bits: message.len(),
-            min_abs_logit: logits.iter().map(|z| z.abs()).fold(f32::INFINITY, f32::min),
-        }
-    }
-}
-
-/// PSNR (dB) of `g`'s renders of every view against the targets (pixels clamped to [0, 1],
-/// one MSE over all views).
-fn views_psnr(g: &Gaussians, views: &[View], opts: &RenderOptions) -> Result<f32, RenderError> {
-    let (mut sq, mut n) = (0.0f64, 0usize);
-    for v in views {
-        let r = render::render(g, &v.camera, opts)?;
-        for (p, q) in r.image.iter().zip(&v.target) {
-            for c in 0..3 {
-                sq += f64::from(p[c].clamp(0.0, 1.0) - q[c]).powi(2);
-            }
-        }
-        n += 3 * r.image.len();
-    }
-    let mse = sq / n.max(1) as f64;
-    Ok(if mse > 0.0 {
-        (-10.0 * mse.log10()) as f32
-    } else {
-        f32::INFINITY
-    })
-}
-
 /// Scales the offsets of the Gaussians in `on` from `base` by `f` (quaternions renormalised).
 fn shrink_offsets(g: &mut Gaussians, base: &Gaussians, on: &[bool], f: f32) {
     let rl = g.rest_len();
-    let lerp = |x: &mut f32, x0: f32| *x = x0 + f * (*x - x0);
+    // Unchanged values stay bit-identical (a replayed view checks that the geometry is).
+    let lerp = |x: &mut f32, x0: f32| {
+        if *x != x0 {
+            *x = x0 + f * (*x - x0);
+        }
+    };
     for i in (0..g.len()).filter(|&i| on[i]) {
         for k in 0..3 {
             lerp(&mut g.means[i][k], base.means[i][k]);
@@ -278,17 +196,20 @@ fn add_into(a: &mut Gaussians, b: &Gaussians) {
     }
 }
 
-/// ‖∂L/∂θ_i‖₂ over every parameter of Gaussian i.
-fn grad_norms(g: &Gaussians) -> Vec<f32> {
+/// ‖∂L/∂θ_i‖₂ over every parameter of Gaussian i, or over its SH coefficients only when
+/// `colour_only` (the parameters colour-only finetuning moves).
+fn grad_norms(g: &Gaussians, colour_only: bool) -> Vec<f32> {
     let rl = g.rest_len();
     (0..g.len())
         .map(|i| {
             let mut s = 0.0f64;
             let mut add = |v: f32| s += f64::from(v) * f64::from(v);
-            g.means[i].iter().for_each(|&v| add(v));
-            g.log_scales[i].iter().for_each(|&v| add(v));
-            g.rotations[i].iter().for_each(|&v| add(v));
-            add(g.opacity_logits[i]);
+            if !colour_only {
+                g.means[i].iter().for_each(|&v| add(v));
+                g.log_scales[i].iter().for_each(|&v| add(v));
+                g.rotations[i].iter().for_each(|&v| add(v));
+                add(g.opacity_logits[i]);
+            }
             g.sh_dc[i].iter().for_each(|&v| add(v));
             g.sh_rest[i * rl..(i + 1) * rl].iter().for_each(|&v| add(v));
             s.sqrt() as f32
@@ -372,6 +293,13 @@ pub fn finetune(
     let mut log = Vec::with_capacity(cfg.steps);
     let per_step = cfg.views_per_step.clamp(1, views.len());
     let mut check = None;
+    // Colour-only finetuning never moves the geometry: each view is then replayed from its
+    // recorded compositing weights (bit-identical images, no rasterisation).
+    let lr = &cfg.lr;
+    let geometry_fixed = [lr.means, lr.opacity, lr.rotation, lr.scale]
+        .iter()
+        .all(|&r| r == 0.0);
+    let mut renderer = Renderer::new(views, render_opts, geometry_fixed);
 
     for step in 1..=cfg.steps + cfg.extra_steps {
         let t0 = Instant::now();
@@ -392,7 +320,7 @@ pub fn finetune(
         }
         let renders = picked
             .iter()
-            .map(|&v| render::render(&g, &views[v].camera, render_opts))
+            .map(|&v| renderer.render(&g, v))
             .collect::<Result<Vec<_>, _>>()?;
         let dims: Vec<(usize, usize)> = picked
             .iter()
@@ -405,7 +333,7 @@ pub fn finetune(
             renders
                 .iter()
                 .zip(&dims)
-                .map(|(r, &(wd, ht))| to_tensor(&r.image, wd, ht, dev).require_grad())
+                .map(|(r, &(wd, ht))| to_tensor(r.image(), wd, ht, dev).require_grad())
                 .collect()
         };
         let targets: Vec<Tensor<4>> = picked
@@ -467,43 +395,33 @@ pub fn finetune(
             .add(bce_t.clone().mul_scalar(w.wm_eot))
             .add(low.expect("views").div_scalar(nv).mul_scalar(w.wav_low));
 
-        // L_vis, on its own leaves so that the two gradients stay apart.
-        let ys = leaves(&device);
-        let mut l_vis: Option<Tensor<1>> = None;
+        // L_vis in closed form, view by view (its own gradient, apart from L_wm's); saved
+        // renders are clamped, so it compares what a viewer sees.
+        let vis: Vec<(f64, Vec<[f32; 3]>)> = picked
+            .iter()
+            .zip(&renders)
+            .zip(&dims)
+            .map(|((&v, r), &(wd, ht))| {
+                visual_loss(r.image(), &views[v].target, wd, ht, w, cfg.dwt_levels)
+            })
+            .collect();
         let mut sq_err = 0.0f64;
         let mut n_px = 0usize;
-        for ((y, t), r) in ys.iter().zip(&targets).zip(&renders) {
-            // Saved renders are clamped; compare what a viewer sees.
-            let y = y.clone().clamp(0.0, 1.0);
-            let term = y
-                .clone()
-                .sub(t.clone())
-                .abs()
-                .mean()
-                .mul_scalar(w.rec)
-                .add(
-                    ssim(y.clone(), t.clone())
-                        .neg()
-                        .add_scalar(1.0)
-                        .mul_scalar(w.dssim),
-                )
-                .add(band_l1(y.clone(), t.clone(), cfg.dwt_levels, false).mul_scalar(w.wav_high));
-            l_vis = Some(l_vis.map_or(term.clone(), |a| a.add(term)));
-            let _ = r;
-        }
         for (&v, r) in picked.iter().zip(&renders) {
-            for (p, q) in r.image.iter().zip(&views[v].target) {
+            for (p, q) in r.image().iter().zip(&views[v].target) {
                 for c in 0..3 {
                     let d = f64::from(p[c].clamp(0.0, 1.0) - q[c]);
                     sq_err += d * d;
                 }
             }
-            n_px += r.image.len() * 3;
+            n_px += r.image().len() * 3;
         }
-        let l_vis = l_vis.expect("views").div_scalar(nv);
 
         let scalar = |t: &Tensor<1>| t.clone().detach().into_scalar::<f32>();
-        let (lw, lv) = (scalar(&l_wm), scalar(&l_vis));
+        let (lw, lv) = (
+            scalar(&l_wm),
+            (vis.iter().map(|(v, _)| v).sum::<f64>() / nv) as f32,
+        );
         if !lw.is_finite() || !lv.is_finite() {
             return Err(FinetuneError::Diverged(
                 if lw.is_finite() { lv } else { lw },
@@ -531,7 +449,6 @@ pub fn finetune(
             (1.0, 1.0)
         };
         let gw = l_wm.mul_scalar(wm_scale).backward();
-        let gv = l_vis.mul_scalar(vis_scale).backward();
         let image_grad = |x: &Tensor<4>, grads: &_, n: usize| -> Vec<[f32; 3]> {
             let d: Vec<f32> = x
                 .grad(grads)
@@ -548,13 +465,17 @@ pub fn finetune(
         let mut grad_wm = g.cast(|_| 0.0f32);
         let mut grad_vis = grad_wm.clone();
         for (k, r) in renders.iter().enumerate() {
-            let n = r.image.len();
+            let n = r.image().len();
             let d_wm = image_grad(&xs[k], &gw, n);
-            let d_vis = image_grad(&ys[k], &gv, n);
-            add_into(&mut grad_wm, &render::backward(&g, r, &d_wm)?.params);
-            add_into(&mut grad_vis, &render::backward(&g, r, &d_vis)?.params);
+            let f = (f64::from(vis_scale) / nv) as f32;
+            let d_vis: Vec<[f32; 3]> = vis[k].1.iter().map(|d| d.map(|v| v * f)).collect();
+            add_into(&mut grad_wm, &renderer.backward(&g, r, &d_wm)?);
+            add_into(&mut grad_vis, &renderer.backward(&g, r, &d_vis)?);
         }
-        for (s, n) in wm_norm_sum.iter_mut().zip(grad_norms(&grad_wm)) {
+        for (s, n) in wm_norm_sum
+            .iter_mut()
+            .zip(grad_norms(&grad_wm, geometry_fixed))
+        {
             *s += f64::from(n);
         }
 

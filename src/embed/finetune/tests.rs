@@ -4,6 +4,7 @@ use super::*;
 use crate::attack::diff::{AttackFamily, EotConfig};
 use crate::decoder::artifact::Sidecar;
 use crate::decoder::train::{TrainConfig, bce_with_logits};
+use crate::render::{self, RenderOptions};
 use crate::scene::orbit::{OrbitOptions, orbit_cameras};
 use crate::scene::synthetic::object_scene;
 

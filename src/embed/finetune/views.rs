@@ -1,0 +1,202 @@
+//! The training views and how a finetuning step renders them: the rasterizer, or — when the
+//! finetuning moves colours only, the default — each view's [`Replay`], recorded the first time
+//! the view is drawn, within [`REPLAY_BUDGET_BYTES`].
+
+use burn::tensor::Device;
+use serde::{Deserialize, Serialize};
+
+use super::FinetuneError;
+use crate::decoder::WatermarkModel;
+use crate::decoder::eval::decode_images;
+use crate::render::{self, RenderError, RenderOptions, Rendered, Replay};
+use crate::scene::{Camera, Gaussians};
+
+/// Memory the replays of one finetuning may hold; views past it are rasterised every step.
+/// (Donut at 512²: ≈ MB a view.)
+pub const REPLAY_BUDGET_BYTES: usize = 1 << 30;
+
+/// A training view: camera and the original scene's render through it.
+#[derive(Clone, Debug)]
+pub struct View {
+    pub camera: Camera,
+    /// Linear RGB, row-major, clamped to [0, 1].
+    pub target: Vec<[f32; 3]>,
+}
+
+/// Renders the targets (the original scene through each camera, clamped to [0, 1]).
+pub fn target_views(
+    original: &Gaussians,
+    cameras: &[Camera],
+    opts: &RenderOptions,
+) -> Result<Vec<View>, RenderError> {
+    cameras
+        .iter()
+        .map(|c| {
+            let r = render::render(original, c, opts)?;
+            Ok(View {
+                camera: c.clone(),
+                target: r
+                    .image
+                    .iter()
+                    .map(|p| p.map(|v| v.clamp(0.0, 1.0)))
+                    .collect(),
+            })
+        })
+        .collect()
+}
+
+/// How the training views decode, as a dispute decodes them: each rendered at 8 bits, logits
+/// averaged over all of them.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ViewsCheck {
+    /// After this many steps.
+    pub step: usize,
+    /// Bits equal to the message's.
+    pub matches: usize,
+    pub bits: usize,
+    /// Smallest |averaged logit| over the bits.
+    pub min_abs_logit: f32,
+}
+
+/// The logits of the training views of `g` as a dispute decodes them: each rendered to an
+/// 8-bit image, decoded and the logits averaged ([`decode_images`], what `/v1/verify` runs).
+pub(crate) fn views_logits(
+    g: &Gaussians,
+    views: &[View],
+    model: &WatermarkModel,
+    opts: &RenderOptions,
+) -> Result<Vec<f32>, FinetuneError> {
+    let images = views
+        .iter()
+        .map(|v| {
+            let r = render::render(g, &v.camera, opts)?;
+            Ok(render::to_rgb8(r.width, r.height, &r.image))
+        })
+        .collect::<Result<Vec<_>, RenderError>>()?;
+    Ok(decode_images(model, &images, &Device::flex().autodiff()).logits)
+}
+
+impl ViewsCheck {
+    pub(super) fn new(step: usize, logits: &[f32], message: &[bool]) -> Self {
+        Self {
+            step,
+            matches: logits
+                .iter()
+                .zip(message)
+                .filter(|&(&z, &m)| (z > 0.0) == m)
+                .count(),
+            bits: message.len(),
+            min_abs_logit: logits.iter().map(|z| z.abs()).fold(f32::INFINITY, f32::min),
+        }
+    }
+}
+
+/// PSNR (dB) of `g`'s renders of every view against the targets (pixels clamped to [0, 1],
+/// one MSE over all views).
+pub(super) fn views_psnr(
+    g: &Gaussians,
+    views: &[View],
+    opts: &RenderOptions,
+) -> Result<f32, RenderError> {
+    let (mut sq, mut n) = (0.0f64, 0usize);
+    for v in views {
+        let r = render::render(g, &v.camera, opts)?;
+        for (p, q) in r.image.iter().zip(&v.target) {
+            for c in 0..3 {
+                sq += f64::from(p[c].clamp(0.0, 1.0) - q[c]).powi(2);
+            }
+        }
+        n += 3 * r.image.len();
+    }
+    let mse = sq / n.max(1) as f64;
+    Ok(if mse > 0.0 {
+        (-10.0 * mse.log10()) as f32
+    } else {
+        f32::INFINITY
+    })
+}
+
+/// One view as a step rendered it.
+pub(super) enum Frame {
+    Raster(Box<Rendered<f32>>),
+    Replayed { view: usize, image: Vec<[f32; 3]> },
+}
+
+impl Frame {
+    /// Linear RGB, row-major, not clamped.
+    pub fn image(&self) -> &[[f32; 3]] {
+        match self {
+            Frame::Raster(r) => &r.image,
+            Frame::Replayed { image, .. } => image,
+        }
+    }
+}
+
+/// Renders the training views and back-propagates through them.
+pub(super) struct Renderer<'a> {
+    views: &'a [View],
+    opts: &'a RenderOptions,
+    /// Per view, its replay once recorded; `None` when the geometry moves.
+    replays: Option<Vec<Option<Replay<f32>>>>,
+    bytes: usize,
+}
+
+impl<'a> Renderer<'a> {
+    /// `geometry_fixed`: no step will move a mean, scale, rotation or opacity (then views are
+    /// replayed).
+    pub fn new(views: &'a [View], opts: &'a RenderOptions, geometry_fixed: bool) -> Self {
+        Self {
+            views,
+            opts,
+            replays: geometry_fixed.then(|| views.iter().map(|_| None).collect()),
+            bytes: 0,
+        }
+    }
+
+    pub fn render(&mut self, g: &Gaussians, v: usize) -> Result<Frame, RenderError> {
+        if let Some(replays) = &mut self.replays {
+            if replays[v].is_none() && self.bytes < REPLAY_BUDGET_BYTES {
+                let r = Replay::record(g, &self.views[v].camera, self.opts)?;
+                self.bytes += r.bytes();
+                tracing::debug!(
+                    view = v,
+                    contributions = r.contributions(),
+                    bytes = r.bytes(),
+                    total_bytes = self.bytes,
+                    "recorded a replay"
+                );
+                replays[v] = Some(r);
+            }
+            if let Some(r) = &replays[v] {
+                return Ok(Frame::Replayed {
+                    view: v,
+                    image: r.render(g)?,
+                });
+            }
+        }
+        Ok(Frame::Raster(Box::new(render::render(
+            g,
+            &self.views[v].camera,
+            self.opts,
+        )?)))
+    }
+
+    /// ∂L/∂θ from ∂L/∂image of `frame` (scene-shaped; a replayed view gives the SH
+    /// coefficients' gradient only, the geometry being fixed).
+    pub fn backward(
+        &self,
+        g: &Gaussians,
+        frame: &Frame,
+        d_image: &[[f32; 3]],
+    ) -> Result<Gaussians, RenderError> {
+        match frame {
+            Frame::Raster(r) => Ok(render::backward(g, r, d_image)?.params),
+            Frame::Replayed { view, .. } => self
+                .replays
+                .as_ref()
+                .and_then(|r| r[*view].as_ref())
+                .expect("a replayed frame has its replay")
+                .backward(g, d_image),
+        }
+    }
+}
