@@ -394,6 +394,70 @@ impl HiddenDecoder {
         adaptive_avg_pool2d(x, [1, 1]).reshape([b, l])
     }
 
+    /// ∂(pooled features)/∂(band) of one centred band (`band`: `[3, h, w]`, planar, as
+    /// [`decoder_input`] gives it) in closed form: `F` rows of `3·h·w`, row-major — for the
+    /// colour-Fourier decoder, whose features are per-pixel (f_j = mean_p sin(ω_j·x_p + β_j)·w_p
+    /// / (mean_p w_p + 1e-6), x = gain·u, w_p the dark weight, or 1). `None` for the
+    /// convolutional decoders (their Jacobian takes one backward pass per feature).
+    pub fn band_jacobian(&self, band: &[f32], h: usize, w: usize) -> Option<Vec<f64>> {
+        use rayon::prelude::*;
+        let conv = self.fourier.as_ref()?;
+        let omega: Vec<f32> = conv.weight.val().try_into_vec_as::<f32>().ok()?;
+        let f = omega.len() / 3;
+        let beta: Vec<f32> = match &conv.bias {
+            Some(b) => b.val().try_into_vec_as::<f32>().ok()?,
+            None => vec![0.0; f],
+        };
+        let n = h * w;
+        if band.len() != 3 * n || beta.len() != f {
+            return None;
+        }
+        let gain = self.input_gain;
+        let x = |ch: usize, p: usize| gain * f64::from(band[ch * n + p]);
+        // The dark weight w_p = 1 − exp(−r_p²), r_p = |x_p + 1|² / τ², and its gradient.
+        let dark = self.fourier_dark > 0.0;
+        let tau2 = (2.0 * self.fourier_dark).powi(2);
+        let (wp, dwp): (Vec<f64>, Vec<[f64; 3]>) = (0..n)
+            .map(|p| {
+                if !dark {
+                    return (1.0, [0.0; 3]);
+                }
+                let v: [f64; 3] = std::array::from_fn(|ch| x(ch, p) + 1.0);
+                let r = v.iter().map(|a| a * a).sum::<f64>() / tau2;
+                let e = (-r * r).exp();
+                (1.0 - e, v.map(|a| e * 2.0 * r * 2.0 * a / tau2))
+            })
+            .unzip();
+        let den = if dark {
+            wp.iter().sum::<f64>() / n as f64 + 1e-6
+        } else {
+            1.0
+        };
+        let mut rows = vec![0.0f64; f * 3 * n];
+        rows.par_chunks_mut(3 * n).enumerate().for_each(|(j, row)| {
+            let om: [f64; 3] = std::array::from_fn(|ch| f64::from(omega[3 * j + ch]));
+            let (sin, cos): (Vec<f64>, Vec<f64>) = (0..n)
+                .map(|p| {
+                    let z = (0..3).map(|ch| om[ch] * x(ch, p)).sum::<f64>() + f64::from(beta[j]);
+                    z.sin_cos()
+                })
+                .unzip();
+            let num = if dark {
+                sin.iter().zip(&wp).map(|(s, w)| s * w).sum::<f64>() / n as f64
+            } else {
+                0.0
+            };
+            for p in 0..n {
+                for ch in 0..3 {
+                    let d = (cos[p] * om[ch] * wp[p] + sin[p] * dwp[p][ch]) / (n as f64 * den)
+                        - num / (den * den) * dwp[p][ch] / n as f64;
+                    row[ch * n + p] = gain * d;
+                }
+            }
+        });
+        Some(rows)
+    }
+
     /// The decoder as used during watermark finetuning: parameters need no gradient and
     /// BatchNorm uses its running statistics even on autodiff inputs ([`Module::freeze`]).
     pub fn frozen(self) -> Self {
@@ -863,6 +927,49 @@ mod tests {
         // Wrong architecture: refused.
         let other = HiddenDecoderConfig::new(32).with_channels(8).with_depth(1);
         assert!(HiddenDecoder::load(&other, &path, &device()).is_err());
+    }
+
+    #[test]
+    fn the_colour_fourier_jacobian_in_closed_form_is_autodiffs() {
+        let (h, w) = (6, 5);
+        let mut rng = Lcg(5);
+        let band: Vec<f32> = (0..3 * h * w)
+            .map(|k| {
+                if k % 7 == 0 {
+                    -0.95
+                } else {
+                    2.0 * rng.uniform() - 1.0
+                }
+            })
+            .collect();
+        let ad = Device::flex().autodiff();
+        for (dark, gain) in [(0.1, 1.0), (0.0, 1.5)] {
+            let dec = HiddenDecoderConfig::new(8)
+                .with_fourier(6)
+                .with_fourier_scale(4.0)
+                .with_fourier_dark(dark)
+                .with_input_gain(gain)
+                .init(&ad);
+            let fast = dec.band_jacobian(&band, h, w).expect("colour-Fourier");
+            for j in 0..6 {
+                let x = Tensor::<4>::from_data(TensorData::new(band.clone(), [1, 3, h, w]), &ad)
+                    .require_grad();
+                let grads = dec.pooled_band(x.clone()).narrow(1, j, 1).sum().backward();
+                let slow = x.grad(&grads).unwrap().try_into_vec_as::<f32>().unwrap();
+                for (k, &b) in slow.iter().enumerate() {
+                    let a = fast[j * 3 * h * w + k];
+                    assert!(
+                        (a - f64::from(b)).abs() < 1e-4 * (1.0 + a.abs()),
+                        "dark {dark}, feature {j}, entry {k}: {a} vs {b}"
+                    );
+                }
+            }
+        }
+        let conv = HiddenDecoderConfig::new(8)
+            .with_channels(4)
+            .with_depth(1)
+            .init(&ad);
+        assert!(conv.band_jacobian(&band, h, w).is_none());
     }
 
     #[test]

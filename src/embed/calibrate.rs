@@ -161,6 +161,7 @@ pub fn decoder_gain(
     opts: &RenderOptions,
 ) -> Result<Vec<f64>, render::RenderError> {
     use burn::tensor::Tensor;
+    use rayon::prelude::*;
     let device = burn::tensor::Device::flex().autodiff();
     let f = model.decoder.feature_count();
     let levels = model.decoder.dwt_levels();
@@ -173,11 +174,20 @@ pub fn decoder_gain(
         let [_, ch, h, w] = band.dims();
         let n = ch * h * w;
         let root_d = band_weights(r.height as usize, r.width as usize, levels);
-        // Row j: ∂f_j/∂u·√d, the whole band.
+        // Row j: ∂f_j/∂u·√d, the whole band — in closed form where the decoder has one.
         let mut rows: Vec<Vec<f64>> = Vec::with_capacity(f);
+        let values: Vec<f32> = band.clone().try_into_vec_as::<f32>().unwrap_or_default();
+        if let Some(jac) = model.decoder.band_jacobian(&values, h, w) {
+            rows.extend(jac.chunks_exact(n).map(|row| {
+                row.iter()
+                    .enumerate()
+                    .map(|(k, &v)| v * root_d[k % (h * w)])
+                    .collect()
+            }));
+        }
         // Batches of the decoder's [B, F, h, w] features of at most 16 M values.
         let chunk = (16_000_000 / (f * h * w).max(1)).clamp(1, f);
-        let mut j0 = 0;
+        let mut j0 = if rows.is_empty() { 0 } else { f };
         while j0 < f {
             let b = chunk.min(f - j0);
             let x = band.clone().repeat_dim(0, b).require_grad();
@@ -201,14 +211,23 @@ pub fn decoder_gain(
             }));
             j0 += b;
         }
-        for i in 0..f {
-            for j in i..f {
-                let v: f64 = rows[i]
-                    .iter()
-                    .zip(&rows[j])
-                    .map(|(a, b)| a * b)
-                    .sum::<f64>()
-                    / views;
+        let upper: Vec<Vec<f64>> = (0..f)
+            .into_par_iter()
+            .map(|i| {
+                (i..f)
+                    .map(|j| {
+                        rows[i]
+                            .iter()
+                            .zip(&rows[j])
+                            .map(|(a, b)| a * b)
+                            .sum::<f64>()
+                            / views
+                    })
+                    .collect()
+            })
+            .collect();
+        for (i, vs) in upper.iter().enumerate() {
+            for (j, &v) in (i..f).zip(vs) {
                 gain[i * f + j] += v;
                 if i != j {
                     gain[j * f + i] += v;

@@ -27,9 +27,40 @@ const C2: f64 = 0.03 * 0.03;
 const SSIM_SIGMA: f64 = 1.5;
 const SSIM_TAPS: usize = 11;
 
-/// A 1D linear operator of length n as gather lists: `out[i] = Σ (j, w) ∈ rows[i]: w·x[j]`.
+/// A 1D linear operator of length n as gather lists: `out[i] = Σ (j, w) ∈ rows[i]: w·x[j]`;
+/// rows `regular` (a range) are the plain kernel `kern` centred on i, applied without lists.
 struct Op1d {
     rows: Vec<Vec<(usize, f32)>>,
+    kern: Vec<f32>,
+    regular: std::ops::Range<usize>,
+}
+
+impl Op1d {
+    fn new(rows: Vec<Vec<(usize, f32)>>, kern: Vec<f32>) -> Self {
+        let half = kern.len() / 2;
+        let is_regular = |i: usize, row: &[(usize, f32)]| {
+            row.len() == kern.len()
+                && row
+                    .iter()
+                    .enumerate()
+                    .all(|(m, &(j, w))| i + m == j + half && w == kern[m])
+        };
+        let flags: Vec<bool> = rows
+            .iter()
+            .enumerate()
+            .map(|(i, r)| is_regular(i, r))
+            .collect();
+        let lo = flags.iter().position(|&f| f).unwrap_or(0);
+        let hi = flags[lo..]
+            .iter()
+            .position(|&f| !f)
+            .map_or(flags.len(), |k| lo + k);
+        Self {
+            rows,
+            kern,
+            regular: lo..hi.max(lo),
+        }
+    }
 }
 
 impl Op1d {
@@ -69,10 +100,11 @@ impl Op1d {
                     .collect()
             })
             .collect();
-        Self { rows }
+        Self::new(rows, taps)
     }
 
-    /// The transpose: `out[j] = Σ_i M[i][j]·x[i]`.
+    /// The transpose: `out[j] = Σ_i M[i][j]·x[i]` (the kernel is symmetric, so regular rows
+    /// stay regular).
     fn transposed(&self) -> Self {
         let mut rows: Vec<Vec<(usize, f32)>> = vec![Vec::new(); self.rows.len()];
         for (i, row) in self.rows.iter().enumerate() {
@@ -80,7 +112,7 @@ impl Op1d {
                 rows[j].push((i, w));
             }
         }
-        Self { rows }
+        Self::new(rows, self.kern.iter().rev().copied().collect())
     }
 }
 
@@ -116,8 +148,21 @@ fn along_x(op: &Op1d, plane: &[f32], w: usize) -> Vec<f32> {
     out.par_chunks_mut(w)
         .zip(plane.par_chunks(w))
         .for_each(|(o, row)| {
-            for (v, taps) in o.iter_mut().zip(&op.rows) {
-                *v = taps.iter().map(|&(j, t)| t * row[j]).sum();
+            let (lo, hi) = (op.regular.start, op.regular.end);
+            let half = op.kern.len() / 2;
+            for (i, (v, taps)) in o.iter_mut().zip(&op.rows).enumerate() {
+                if !(lo..hi).contains(&i) {
+                    *v = taps.iter().map(|&(j, t)| t * row[j]).sum();
+                }
+            }
+            // Interior: tap by tap over the whole run (vectorised).
+            if lo >= hi {
+                return;
+            }
+            for (m, &t) in op.kern.iter().enumerate() {
+                for (v, &x) in o[lo..hi].iter_mut().zip(&row[lo + m - half..hi + m - half]) {
+                    *v += t * x;
+                }
             }
         });
     out
