@@ -12,7 +12,7 @@ use crate::render::{self, RenderError, RenderOptions, Rendered, Replay};
 use crate::scene::{Camera, Gaussians};
 
 /// Memory the replays of one finetuning may hold; views past it are rasterised every step.
-/// (Donut at 512²: ≈ MB a view.)
+/// (Donut at 512²: ≈ 19 MB a view — peak memory 743 → 1 128 MiB with its 21 views recorded.)
 pub const REPLAY_BUDGET_BYTES: usize = 1 << 30;
 
 /// A training view: camera and the original scene's render through it.
