@@ -3,7 +3,7 @@
 use burn::tensor::{Device, Tensor, TensorData};
 
 use crate::attack::diff::{gaussian_blur, straight_through_round};
-use crate::decoder::dwt::dwt;
+use crate::decoder::dwt::{dwt, ll_band};
 use crate::decoder::train::bce_with_logits;
 
 /// The watermark loss of a step's views (`[1, L]` logits each): the BCE of their average (eq.
@@ -116,10 +116,11 @@ pub fn ssim(x: Tensor<4>, y: Tensor<4>) -> Tensor<1> {
 
 /// L1 distance of the LL bands (`low`) or of every high band of every level (`!low`).
 pub(super) fn band_l1(x: Tensor<4>, y: Tensor<4>, levels: usize, low: bool) -> Tensor<1> {
-    let (dx, dy) = (dwt(x, levels), dwt(y, levels));
     if low {
-        return dx.ll.sub(dy.ll).abs().mean();
+        // The LL band alone, without forming the detail bands (the same values).
+        return ll_band(x, levels).sub(ll_band(y, levels)).abs().mean();
     }
+    let (dx, dy) = (dwt(x, levels), dwt(y, levels));
     let mut total: Option<Tensor<1>> = None;
     for (a, b) in dx.highs.into_iter().zip(dy.highs) {
         for (p, q) in a.into_iter().zip(b) {

@@ -367,12 +367,14 @@ pub fn finetune(
         let mut low: Option<Tensor<1>> = None;
         for (x, t) in xs.iter().zip(&targets) {
             let saved = as_saved(x.clone());
-            z_cl.push(model.forward(saved.clone()));
-            let attacked = match &attack {
-                Some(a) => a.apply(saved)?,
-                None => saved,
-            };
-            z_t.push(model.forward(attacked));
+            let clean = model.forward(saved.clone());
+            // No attack drawn: the EOT term reads the clean logits (one decoder pass, the same
+            // gradient).
+            z_t.push(match &attack {
+                Some(a) => model.forward(a.apply(saved)?),
+                None => clean.clone(),
+            });
+            z_cl.push(clean);
             let b = band_l1(x.clone(), t.clone(), cfg.dwt_levels, true);
             low = Some(low.map_or(b.clone(), |a| a.add(b)));
         }
