@@ -160,7 +160,6 @@ pub fn decoder_gain(
     model: &WatermarkModel,
     opts: &RenderOptions,
 ) -> Result<Vec<f64>, render::RenderError> {
-    use burn::tensor::Tensor;
     use rayon::prelude::*;
     let device = burn::tensor::Device::flex().autodiff();
     let f = model.decoder.feature_count();
@@ -175,42 +174,20 @@ pub fn decoder_gain(
         let n = ch * h * w;
         let root_d = band_weights(r.height as usize, r.width as usize, levels);
         // Row j: ∂f_j/∂u·√d, the whole band — in closed form where the decoder has one.
-        let mut rows: Vec<Vec<f64>> = Vec::with_capacity(f);
         let values: Vec<f32> = band.clone().try_into_vec_as::<f32>().unwrap_or_default();
-        if let Some(jac) = model.decoder.band_jacobian(&values, h, w) {
-            rows.extend(jac.chunks_exact(n).map(|row| {
+        let jac = model
+            .decoder
+            .band_jacobian(&values, h, w)
+            .unwrap_or_else(|| jacobian_by_backward(model, band, f, &device));
+        let rows: Vec<Vec<f64>> = jac
+            .chunks_exact(n)
+            .map(|row| {
                 row.iter()
                     .enumerate()
                     .map(|(k, &v)| v * root_d[k % (h * w)])
                     .collect()
-            }));
-        }
-        // Batches of the decoder's [B, F, h, w] features of at most 16 M values.
-        let chunk = (16_000_000 / (f * h * w).max(1)).clamp(1, f);
-        let mut j0 = if rows.is_empty() { 0 } else { f };
-        while j0 < f {
-            let b = chunk.min(f - j0);
-            let x = band.clone().repeat_dim(0, b).require_grad();
-            let p = model.decoder.pooled_band(x.clone()); // [b, F]
-            // Σ_i p[i, j0 + i]: the batch row i back-propagates feature j0 + i alone.
-            let mut sel = vec![0.0f32; b * f];
-            for i in 0..b {
-                sel[i * f + j0 + i] = 1.0;
-            }
-            let sel = Tensor::<2>::from_data(burn::tensor::TensorData::new(sel, [b, f]), &device);
-            let grads = (p * sel).sum().backward();
-            let d: Vec<f32> = x
-                .grad(&grads)
-                .and_then(|t| t.try_into_vec_as::<f32>().ok())
-                .unwrap_or_else(|| vec![0.0; b * n]);
-            rows.extend(d.chunks_exact(n).map(|row| {
-                row.iter()
-                    .enumerate()
-                    .map(|(k, &v)| f64::from(v) * root_d[k % (h * w)])
-                    .collect()
-            }));
-            j0 += b;
-        }
+            })
+            .collect();
         let upper: Vec<Vec<f64>> = (0..f)
             .into_par_iter()
             .map(|i| {
@@ -236,6 +213,42 @@ pub fn decoder_gain(
         }
     }
     Ok(gain)
+}
+
+/// ∂(pooled features)/∂band of one band `[1, C, h, w]` by back-propagation, one feature per
+/// batch row: `f` rows of `C·h·w`, row-major.
+fn jacobian_by_backward(
+    model: &WatermarkModel,
+    band: burn::tensor::Tensor<4>,
+    f: usize,
+    device: &burn::tensor::Device,
+) -> Vec<f64> {
+    use burn::tensor::{Tensor, TensorData};
+    let [_, ch, h, w] = band.dims();
+    let n = ch * h * w;
+    let mut jac = Vec::with_capacity(f * n);
+    // Batches of the decoder's [B, F, h, w] features of at most 16 M values.
+    let chunk = (16_000_000 / (f * h * w).max(1)).clamp(1, f);
+    let mut j0 = 0;
+    while j0 < f {
+        let b = chunk.min(f - j0);
+        let x = band.clone().repeat_dim(0, b).require_grad();
+        let p = model.decoder.pooled_band(x.clone()); // [b, F]
+        // Σ_i p[i, j0 + i]: the batch row i back-propagates feature j0 + i alone.
+        let mut sel = vec![0.0f32; b * f];
+        for i in 0..b {
+            sel[i * f + j0 + i] = 1.0;
+        }
+        let sel = Tensor::<2>::from_data(TensorData::new(sel, [b, f]), device);
+        let grads = (p * sel).sum().backward();
+        let d: Vec<f32> = x
+            .grad(&grads)
+            .and_then(|t| t.try_into_vec_as::<f32>().ok())
+            .unwrap_or_else(|| vec![0.0; b * n]);
+        jac.extend(d.iter().map(|&v| f64::from(v)));
+        j0 += b;
+    }
+    jac
 }
 
 /// √d_q of [`decoder_gain`] for each entry of the LL band (row-major, `ll_size`) of a
@@ -462,10 +475,18 @@ mod tests {
     fn the_gain_taken_on_the_band_equals_the_gain_over_the_pixels() {
         let g = object_scene(400, 0, 3);
         let device = burn::tensor::Device::flex();
-        let model = WatermarkModel::shipped(32, &device).unwrap();
+        let shipped = WatermarkModel::shipped(32, &device).unwrap();
+        // A convolutional decoder too: its Jacobian comes from back-propagation, the
+        // colour-Fourier one's in closed form.
+        let mut conv = shipped.clone();
+        conv.decoder = crate::decoder::model::HiddenDecoderConfig::new(32)
+            .with_channels(4)
+            .with_depth(1)
+            .with_norm(crate::decoder::model::Norm::Group)
+            .init(&device);
         let opts = RenderOptions::default();
         // 30 × 22 is not a multiple of the band's 4 × 4 blocks: the edge padding counts too.
-        for (width, height) in [(32, 24), (30, 22)] {
+        for (model, width, height) in [(&shipped, 32, 24), (&shipped, 30, 22), (&conv, 30, 22)] {
             let cams = orbit_cameras(
                 &g,
                 &OrbitOptions {
@@ -476,8 +497,8 @@ mod tests {
                 },
             )
             .unwrap();
-            let fast = decoder_gain(&g, &cams, &model, &opts).unwrap();
-            let slow = gain_by_pixels(&g, &cams, &model, &opts);
+            let fast = decoder_gain(&g, &cams, model, &opts).unwrap();
+            let slow = gain_by_pixels(&g, &cams, model, &opts);
             let scale = slow.iter().fold(0.0f64, |m, v| m.max(v.abs()));
             assert!(scale > 0.0);
             let worst = fast

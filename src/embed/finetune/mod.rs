@@ -466,10 +466,10 @@ pub fn finetune(
         // Two backward passes through each render; sum over the step's views.
         let mut grad_wm = g.cast(|_| 0.0f32);
         let mut grad_vis = grad_wm.clone();
+        let f = (f64::from(vis_scale) / nv) as f32;
         for (k, r) in renders.iter().enumerate() {
             let n = r.image().len();
             let d_wm = image_grad(&xs[k], &gw, n);
-            let f = (f64::from(vis_scale) / nv) as f32;
             let d_vis: Vec<[f32; 3]> = vis[k].1.iter().map(|d| d.map(|v| v * f)).collect();
             add_into(&mut grad_wm, &renderer.backward(&g, r, &d_wm)?);
             add_into(&mut grad_vis, &renderer.backward(&g, r, &d_vis)?);
