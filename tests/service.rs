@@ -299,6 +299,17 @@ async fn idempotency_keys_replay_and_conflict_and_bad_requests_are_named() {
         let p = assert_problem(post(body, None).await.unwrap(), status).await;
         assert!(p["detail"].as_str().unwrap().contains(needle), "{p}");
     }
+    // A message that is not hex is still a secret: the problem never repeats it.
+    let p = assert_problem(
+        post(json!({"bits": 32, "message": "c0ffee5g"}), None)
+            .await
+            .unwrap(),
+        StatusCode::UNPROCESSABLE_ENTITY,
+    )
+    .await;
+    let detail = p["detail"].as_str().unwrap();
+    assert!(detail.contains("character 8"), "{p}");
+    assert!(!p.to_string().contains("c0ffee5"), "{p}");
     // Cancel a queued job; cancelling it again is a no-op (DELETE is idempotent).
     let jid = j3["id"].as_str().unwrap();
     let r = t

@@ -4,8 +4,12 @@
 /// A message string that does not fit.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum MessageError {
-    #[error("message '{0}' is not hexadecimal (digits 0-9, a-f)")]
-    NotHex(String),
+    /// The message itself is a secret: the error names only where the first character that is
+    /// not a hex digit is (counted in characters, from 1), never the message.
+    #[error("message is not hexadecimal (digits 0-9, a-f): character {0} is not a hex digit")]
+    NotHex(usize),
+    #[error("message is empty")]
+    Empty,
     #[error("message has {got} bits ({digits} hex digits), {want} bits need {} hex digits", want / 4)]
     Length {
         got: usize,
@@ -21,20 +25,20 @@ pub fn parse_hex(hex: &str, bits: usize) -> Result<Vec<bool>, MessageError> {
     if bits == 0 || !bits.is_multiple_of(4) {
         return Err(MessageError::BadBits(bits));
     }
-    let s = hex.trim();
-    let s = s
+    let trimmed = hex.trim();
+    let s = trimmed
         .strip_prefix("0x")
-        .or_else(|| s.strip_prefix("0X"))
-        .unwrap_or(s);
+        .or_else(|| trimmed.strip_prefix("0X"))
+        .unwrap_or(trimmed);
+    // Characters before the digits: leading white space and the prefix.
+    let skipped = hex.chars().take_while(|c| c.is_whitespace()).count() + (trimmed.len() - s.len());
     let digits: Vec<u32> = s
         .chars()
-        .map(|c| {
-            c.to_digit(16)
-                .ok_or_else(|| MessageError::NotHex(hex.into()))
-        })
+        .enumerate()
+        .map(|(k, c)| c.to_digit(16).ok_or(MessageError::NotHex(skipped + k + 1)))
         .collect::<Result<_, _>>()?;
     if digits.is_empty() {
-        return Err(MessageError::NotHex(hex.into()));
+        return Err(MessageError::Empty);
     }
     if digits.len() * 4 != bits {
         return Err(MessageError::Length {
@@ -95,8 +99,14 @@ mod tests {
 
     #[test]
     fn bad_messages_are_typed_errors() {
-        assert!(matches!(parse_hex("xyz", 12), Err(MessageError::NotHex(_))));
-        assert!(matches!(parse_hex("", 4), Err(MessageError::NotHex(_))));
+        assert_eq!(parse_hex("xyz", 12), Err(MessageError::NotHex(1)));
+        assert_eq!(parse_hex(" 0xdeadbeeg", 32), Err(MessageError::NotHex(11)));
+        assert_eq!(parse_hex("", 4), Err(MessageError::Empty));
+        assert_eq!(parse_hex(" 0x ", 4), Err(MessageError::Empty));
+        // The message is a secret: an error never repeats it.
+        let e = parse_hex("c0ffee5ecre7", 48).unwrap_err().to_string();
+        assert!(!e.contains("c0ffee5ec"), "{e}");
+        assert!(e.contains("character 10"), "{e}");
         assert_eq!(
             parse_hex("abc", 32),
             Err(MessageError::Length {
