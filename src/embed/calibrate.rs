@@ -126,10 +126,17 @@ pub fn fit_projection(
     cfg: &ProjectionConfig,
 ) -> Result<ViewProjection, EmbedError> {
     let cams = calibration_cameras(original, train, cfg);
-    let features = original_features(original, &cams, model, opts)?;
+    // Each view of the original is rendered once: its features, the gain over the training
+    // views (the first `train.len()` calibration cameras) and the nuisance samples of the
+    // original all read the same 8-bit renders.
+    let renders = cams
+        .iter()
+        .map(|c| render_rgb8(original, c, opts))
+        .collect::<Result<Vec<_>, _>>()?;
+    let features = features_of(model, &renders);
     let fitted = if cfg.matched {
-        let gain = decoder_gain(original, train, model, opts)?;
-        let nuisance = nuisance_features(original, &cams, model, opts, cfg)?;
+        let gain = gain_of_renders(&renders[..train.len()], model);
+        let nuisance = nuisance_samples(original, &cams, Some(&renders), model, opts, cfg)?;
         ViewProjection::fit_matched(
             &features,
             &nuisance,
@@ -142,6 +149,25 @@ pub fn fit_projection(
         ViewProjection::fit(&features, cfg.rank, model.bits())
     };
     fitted.map_err(|e| EmbedError::Invalid(e.to_string()))
+}
+
+/// `g` through `camera`, rounded to 8 bits as a saved image would be.
+fn render_rgb8(
+    g: &Gaussians,
+    camera: &Camera,
+    opts: &RenderOptions,
+) -> Result<image::RgbImage, render::RenderError> {
+    let r = render::render(g, camera, opts)?;
+    Ok(render::to_rgb8(r.width, r.height, &r.image))
+}
+
+/// `model`'s pooled features of each image, in order.
+fn features_of(model: &WatermarkModel, images: &[image::RgbImage]) -> Vec<Vec<f32>> {
+    let device = burn::tensor::Device::flex();
+    images
+        .iter()
+        .flat_map(|img| model.features(rgb8_tensor(img, &device)))
+        .collect()
 }
 
 /// G of eq. `matchedhead`: Σ over the pixels of the original's renders through `cameras` of
@@ -160,19 +186,26 @@ pub fn decoder_gain(
     model: &WatermarkModel,
     opts: &RenderOptions,
 ) -> Result<Vec<f64>, render::RenderError> {
+    let renders = cameras
+        .iter()
+        .map(|c| render_rgb8(original, c, opts))
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok(gain_of_renders(&renders, model))
+}
+
+/// [`decoder_gain`] over the 8-bit renders of the views.
+fn gain_of_renders(renders: &[image::RgbImage], model: &WatermarkModel) -> Vec<f64> {
     use rayon::prelude::*;
     let device = burn::tensor::Device::flex().autodiff();
     let f = model.decoder.feature_count();
     let levels = model.decoder.dwt_levels();
     let mut gain = vec![0.0f64; f * f];
-    let views = cameras.len().max(1) as f64;
-    for c in cameras {
-        let r = render::render(original, c, opts)?;
-        let img = render::to_rgb8(r.width, r.height, &r.image);
-        let band = decoder_input(rgb8_tensor(&img, &device), levels);
+    let views = renders.len().max(1) as f64;
+    for img in renders {
+        let band = decoder_input(rgb8_tensor(img, &device), levels);
         let [_, ch, h, w] = band.dims();
         let n = ch * h * w;
-        let root_d = band_weights(r.height as usize, r.width as usize, levels);
+        let root_d = band_weights(img.height() as usize, img.width() as usize, levels);
         // Row j: ∂f_j/∂u·√d, the whole band — in closed form where the decoder has one.
         let values: Vec<f32> = band.clone().try_into_vec_as::<f32>().unwrap_or_default();
         let jac = model
@@ -212,7 +245,7 @@ pub fn decoder_gain(
             }
         }
     }
-    Ok(gain)
+    gain
 }
 
 /// ∂(pooled features)/∂band of one band `[1, C, h, w]` by back-propagation, one feature per
@@ -293,6 +326,19 @@ pub fn nuisance_features(
     opts: &RenderOptions,
     cfg: &ProjectionConfig,
 ) -> Result<Vec<Vec<f32>>, EmbedError> {
+    nuisance_samples(original, cams, None, model, opts, cfg)
+}
+
+/// [`nuisance_features`], reading the original's views from `renders` (its 8-bit renders
+/// through `cams`, in order) when given instead of rendering them again.
+fn nuisance_samples(
+    original: &Gaussians,
+    cams: &[Camera],
+    renders: Option<&[image::RgbImage]>,
+    model: &WatermarkModel,
+    opts: &RenderOptions,
+    cfg: &ProjectionConfig,
+) -> Result<Vec<Vec<f32>>, EmbedError> {
     use crate::attack::model::ModelAttack;
     use crate::attack::real::RealAttack;
     if cfg.nuisance == 0 || cams.is_empty() {
@@ -319,14 +365,15 @@ pub fn nuisance_features(
     let device = burn::tensor::Device::flex();
     let mut out = Vec::with_capacity(cfg.nuisance);
     for _ in 0..cfg.nuisance {
-        let cam = &cams[rng.range_int(0, cams.len() as u64 - 1) as usize];
-        let scene = if rng.uniform() < 0.5 {
-            original
+        let k = rng.range_int(0, cams.len() as u64 - 1) as usize;
+        let img = if rng.uniform() < 0.5 {
+            match renders {
+                Some(r) => r[k].clone(),
+                None => render_rgb8(original, &cams[k], opts)?,
+            }
         } else {
-            &copies[rng.range_int(0, 3) as usize]
+            render_rgb8(&copies[rng.range_int(0, 3) as usize], &cams[k], opts)?
         };
-        let r = render::render(scene, cam, opts)?;
-        let img = render::to_rgb8(r.width, r.height, &r.image);
         let noise = RealAttack::Noise {
             sigma: 0.1,
             seed: rng.next_u64(),
@@ -372,27 +419,23 @@ pub fn nuisance_features(
     Ok(out)
 }
 
-/// `model`'s pooled features of `original` through each camera, rendered to 8 bits as a dispute
-/// decodes them.
-fn original_features(
-    original: &Gaussians,
-    cameras: &[Camera],
-    model: &WatermarkModel,
-    opts: &RenderOptions,
-) -> Result<Vec<Vec<f32>>, render::RenderError> {
-    let device = burn::tensor::Device::flex();
-    let mut features = Vec::with_capacity(cameras.len());
-    for c in cameras {
-        let r = render::render(original, c, opts)?;
-        let img = render::to_rgb8(r.width, r.height, &r.image);
-        features.extend(model.features(rgb8_tensor(&img, &device)));
-    }
-    Ok(features)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `model`'s pooled features of `g` through each camera, rendered to 8 bits.
+    pub(super) fn original_features(
+        g: &Gaussians,
+        cams: &[Camera],
+        model: &WatermarkModel,
+        opts: &RenderOptions,
+    ) -> Result<Vec<Vec<f32>>, render::RenderError> {
+        let renders = cams
+            .iter()
+            .map(|c| render_rgb8(g, c, opts))
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(features_of(model, &renders))
+    }
     use crate::scene::orbit::{OrbitOptions, orbit_cameras};
     use crate::scene::synthetic::object_scene;
 
@@ -650,6 +693,7 @@ mod tests {
 /// `cargo test --release --lib -- --ignored projection_spread head_gain --nocapture`.
 #[cfg(test)]
 mod measure {
+    use super::tests::original_features;
     use super::*;
     use crate::verify::bench::{QualityOptions, views};
     use burn::tensor::{Tensor, TensorData};
