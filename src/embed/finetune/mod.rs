@@ -47,6 +47,7 @@ use std::ops::ControlFlow;
 use std::time::Instant;
 
 use burn::tensor::{Device, Tensor, TensorData};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::mask::Masks;
@@ -362,22 +363,7 @@ pub fn finetune(
             a => Some(a),
         };
         let xs = leaves(&device);
-        let mut z_cl: Vec<Tensor<2>> = Vec::with_capacity(xs.len());
-        let mut z_t: Vec<Tensor<2>> = Vec::with_capacity(xs.len());
-        let mut low: Option<Tensor<1>> = None;
-        for (x, t) in xs.iter().zip(&targets) {
-            let saved = as_saved(x.clone());
-            let clean = model.forward(saved.clone());
-            // No attack drawn: the EOT term reads the clean logits (one decoder pass, the same
-            // gradient).
-            z_t.push(match &attack {
-                Some(a) => model.forward(a.apply(saved)?),
-                None => clean.clone(),
-            });
-            z_cl.push(clean);
-            let b = band_l1(x.clone(), t.clone(), cfg.dwt_levels, true);
-            low = Some(low.map_or(b.clone(), |a| a.add(b)));
-        }
+        let (z_cl, z_t, low) = decode_views(model, &xs, &targets, attack.as_ref(), cfg.dwt_levels)?;
         let margin = Margin {
             margin: cfg.wm_margin,
             sharpness: cfg.wm_sharpness,
@@ -395,12 +381,12 @@ pub fn finetune(
             .clone()
             .mul_scalar(w.wm_clean)
             .add(bce_t.clone().mul_scalar(w.wm_eot))
-            .add(low.expect("views").div_scalar(nv).mul_scalar(w.wav_low));
+            .add(low.div_scalar(nv).mul_scalar(w.wav_low));
 
         // L_vis in closed form, view by view (its own gradient, apart from L_wm's); saved
         // renders are clamped, so it compares what a viewer sees.
         let vis: Vec<(f64, Vec<[f32; 3]>)> = picked
-            .iter()
+            .par_iter()
             .zip(&renders)
             .zip(&dims)
             .map(|((&v, r), &(wd, ht))| {
@@ -605,6 +591,52 @@ pub fn finetune(
         check,
         seconds: start.elapsed().as_secs_f64(),
     })
+}
+
+/// The decoder's logits (`[1, L]` each) of a step's views `xs`, clean and through `attack` (the
+/// clean ones again when none is drawn: one decoder pass, the same gradient), and Σ over the
+/// views of the LL band's L1 to their `targets`. Views of one size go through the decoder as one
+/// batch — the decoder and its heads act on each image alone (GroupNorm, no BatchNorm), so the
+/// logits are the per-view ones, for a fraction of the per-call cost; mixed sizes go one by one.
+#[allow(clippy::type_complexity)]
+fn decode_views(
+    model: &WatermarkModel,
+    xs: &[Tensor<4>],
+    targets: &[Tensor<4>],
+    attack: Option<&DiffAttack>,
+    levels: usize,
+) -> Result<(Vec<Tensor<2>>, Vec<Tensor<2>>, Tensor<1>), FinetuneError> {
+    let one_size = xs.windows(2).all(|p| p[0].dims() == p[1].dims());
+    let groups: Vec<(Tensor<4>, Tensor<4>, usize)> = if one_size {
+        vec![(
+            Tensor::cat(xs.to_vec(), 0),
+            Tensor::cat(targets.to_vec(), 0),
+            xs.len(),
+        )]
+    } else {
+        xs.iter()
+            .zip(targets)
+            .map(|(x, t)| (x.clone(), t.clone(), 1))
+            .collect()
+    };
+    let (mut z_cl, mut z_t) = (Vec::with_capacity(xs.len()), Vec::with_capacity(xs.len()));
+    let mut low: Option<Tensor<1>> = None;
+    for (x, t, n) in groups {
+        let saved = as_saved(x.clone());
+        let clean = model.forward(saved.clone());
+        let attacked = match attack {
+            Some(a) => model.forward(a.apply(saved)?),
+            None => clean.clone(),
+        };
+        for k in 0..n {
+            z_cl.push(clean.clone().narrow(0, k, 1));
+            z_t.push(attacked.clone().narrow(0, k, 1));
+        }
+        // The batch's mean over equal-sized views, times their count: the sum of their means.
+        let b = band_l1(x, t, levels, true).mul_scalar(n as f64);
+        low = Some(low.map_or(b.clone(), |a| a.add(b)));
+    }
+    Ok((z_cl, z_t, low.expect("a step has views")))
 }
 
 /// Copies every parameter of Gaussian `i` from `src` into `dst`.
