@@ -436,3 +436,75 @@ fn ssim_is_one_on_equal_images_and_falls_with_noise() {
     assert!((same - 1.0).abs() < 1e-5, "{same}");
     assert!(noisy < 0.99 && noisy > 0.0, "{noisy}");
 }
+
+#[test]
+fn views_decoded_as_one_batch_give_each_views_own_logits_and_gradient() {
+    let m = model(16);
+    let device = Device::flex().autodiff();
+    let (g, views, opts) = setup();
+    let images: Vec<Vec<[f32; 3]>> = views[..3]
+        .iter()
+        .map(|v| render::render(&g, &v.camera, &opts).unwrap().image)
+        .collect();
+    let (w, h) = (
+        views[0].camera.width as usize,
+        views[0].camera.height as usize,
+    );
+    let leaves = || -> Vec<Tensor<4>> {
+        images
+            .iter()
+            .map(|im| to_tensor(im, w, h, &device).require_grad())
+            .collect()
+    };
+    let targets: Vec<Tensor<4>> = views[..3]
+        .iter()
+        .map(|v| to_tensor(&v.target, w, h, &device))
+        .collect();
+    let blur = DiffAttack::Blur {
+        sigma: 1.0,
+        kernel: 5,
+    };
+    let bits = Tensor::<2>::from_data(TensorData::new(vec![1.0f32; 16], [1, 16]), &device);
+    let loss = |z_cl: &[Tensor<2>], z_t: &[Tensor<2>], low: Tensor<1>| {
+        views_bce(z_cl, &bits, true, Margin::BCE)
+            .add(views_bce(z_t, &bits, true, Margin::BCE))
+            .add(low)
+    };
+    // All three at once, then each alone.
+    let xs = leaves();
+    let (z_cl, z_t, low) = decode_views(&m, &xs, &targets, Some(&blur), 2).unwrap();
+    let grads = loss(&z_cl, &z_t, low.clone()).backward();
+    let values = |t: &Tensor<2>| t.clone().detach().try_into_vec_as::<f32>().unwrap();
+    let mut low_sum = 0.0;
+    for k in 0..3 {
+        let x = leaves().swap_remove(k);
+        let (c, a, l) = decode_views(
+            &m,
+            std::slice::from_ref(&x),
+            &targets[k..=k],
+            Some(&blur),
+            2,
+        )
+        .unwrap();
+        low_sum += l.clone().into_scalar::<f32>();
+        for (batched, alone) in [(&z_cl[k], &c[0]), (&z_t[k], &a[0])] {
+            for (p, q) in values(batched).iter().zip(values(alone)) {
+                assert!((p - q).abs() < 1e-4, "view {k}: {p} vs {q}");
+            }
+        }
+        let g_alone = loss(&c, &a, l).backward();
+        let d = |x: &Tensor<4>, gr: &_| x.grad(gr).unwrap().try_into_vec_as::<f32>().unwrap();
+        let (db, da) = (d(&xs[k], &grads), d(&x, &g_alone));
+        // The batched loss averages over 3 views: its gradient is a third of each alone's.
+        let scale = da.iter().map(|v| v.abs()).fold(0.0f32, f32::max);
+        assert!(scale > 1e-9, "view {k}: the loss reaches the image");
+        for (p, q) in db.iter().zip(&da) {
+            assert!((3.0 * p - q).abs() <= 1e-3 * scale, "view {k}: {p} vs {q}");
+        }
+    }
+    let low = low.into_scalar::<f32>();
+    assert!(
+        (low - low_sum).abs() <= 1e-5 * low_sum.abs().max(1.0),
+        "{low} vs {low_sum}"
+    );
+}
