@@ -194,75 +194,103 @@ impl<T: Real> Replay<T> {
         g: &Gaussians<T>,
         d_image: &[[T; 3]],
     ) -> Result<Gaussians<T>, RenderError> {
+        Ok(self
+            .backward_each(g, &[d_image])?
+            .pop()
+            .expect("one gradient"))
+    }
+
+    /// [`Replay::backward`] of several image gradients at once (one pass over the recorded
+    /// weights, the colours evaluated once): one scene-shaped gradient per entry of
+    /// `d_images`, each equal to its own [`Replay::backward`].
+    pub fn backward_each(
+        &self,
+        g: &Gaussians<T>,
+        d_images: &[&[[T; 3]]],
+    ) -> Result<Vec<Gaussians<T>>, RenderError> {
         self.check(g)?;
-        if d_image.len() != self.width * self.height {
-            return Err(RenderError::GradientSize {
-                got: d_image.len(),
-                expected: self.width * self.height,
-            });
+        for d in d_images {
+            if d.len() != self.width * self.height {
+                return Err(RenderError::GradientSize {
+                    got: d.len(),
+                    expected: self.width * self.height,
+                });
+            }
         }
-        // Per run: Σ_p w·∂L/∂pixel_p, then summed per Gaussian in run order (deterministic).
-        let mut per_run = vec![[T::zero(); 3]; self.runs.len()];
-        let slices = split_by_ranges(&mut per_run, &self.tile_runs);
+        let kk = d_images.len();
+        // Per run and gradient: Σ_p w·∂L/∂pixel_p, then summed per Gaussian in run order
+        // (deterministic).
+        let mut per_run = vec![[T::zero(); 3]; self.runs.len() * kk];
+        let ranges: Vec<(u32, u32)> = self
+            .tile_runs
+            .iter()
+            .map(|&(r0, r1)| (r0 * kk as u32, r1 * kk as u32))
+            .collect();
+        let slices = split_by_ranges(&mut per_run, &ranges);
         slices.into_par_iter().enumerate().for_each(|(t, out)| {
             let (tx, ty) = (t % self.tiles_x, t / self.tiles_x);
             let (x0, y0) = (tx * TILE, ty * TILE);
             let (r0, _) = self.tile_runs[t];
             let mut k = self.tile_starts[t] as usize;
-            for (slot, &(_, end)) in out.iter_mut().zip(&self.runs[r0 as usize..]) {
-                let mut acc = [T::zero(); 3];
+            for (slots, &(_, end)) in out.chunks_exact_mut(kk).zip(&self.runs[r0 as usize..]) {
                 for (p, &w) in self.pix[k..end as usize]
                     .iter()
                     .zip(&self.w[k..end as usize])
                 {
                     let (lx, ly) = (*p as usize % TILE, *p as usize / TILE);
-                    let d = d_image[(y0 + ly) * self.width + x0 + lx];
-                    for ch in 0..3 {
-                        acc[ch] = acc[ch] + w * d[ch];
+                    let at = (y0 + ly) * self.width + x0 + lx;
+                    for (acc, d) in slots.iter_mut().zip(d_images) {
+                        let d = d[at];
+                        for ch in 0..3 {
+                            acc[ch] = acc[ch] + w * d[ch];
+                        }
                     }
                 }
-                *slot = acc;
                 k = end as usize;
             }
         });
-        let mut d_colour = vec![[T::zero(); 3]; self.ids.len()];
-        for (&(splat, _), d) in self.runs.iter().zip(&per_run) {
-            let acc = &mut d_colour[splat as usize];
-            for ch in 0..3 {
-                acc[ch] = acc[ch] + d[ch];
-            }
-        }
-
-        let rest_len = g.rest_len();
         let colours = self.colours(g);
+        let rest_len = g.rest_len();
         let stride = rest_len.max(1);
-        let mut rest = vec![T::zero(); self.ids.len() * stride];
-        let dc: Vec<[T; 3]> = self
-            .ids
-            .par_iter()
-            .zip(&colours)
-            .zip(&d_colour)
-            .zip(rest.par_chunks_mut(stride))
-            .map(|(((&i, &(_, clamped)), &d), rest_out)| {
-                colour_backward(
-                    g,
-                    i as usize,
-                    &self.cam,
-                    self.sh_degree,
-                    clamped,
-                    d,
-                    &mut rest_out[..rest_len],
-                )
-                .0
+        let grads = (0..kk)
+            .map(|j| {
+                let mut d_colour = vec![[T::zero(); 3]; self.ids.len()];
+                for (r, &(splat, _)) in self.runs.iter().enumerate() {
+                    let (acc, d) = (&mut d_colour[splat as usize], per_run[r * kk + j]);
+                    for ch in 0..3 {
+                        acc[ch] = acc[ch] + d[ch];
+                    }
+                }
+                let mut rest = vec![T::zero(); self.ids.len() * stride];
+                let dc: Vec<[T; 3]> = self
+                    .ids
+                    .par_iter()
+                    .zip(&colours)
+                    .zip(&d_colour)
+                    .zip(rest.par_chunks_mut(stride))
+                    .map(|(((&i, &(_, clamped)), &d), rest_out)| {
+                        colour_backward(
+                            g,
+                            i as usize,
+                            &self.cam,
+                            self.sh_degree,
+                            clamped,
+                            d,
+                            &mut rest_out[..rest_len],
+                        )
+                        .0
+                    })
+                    .collect();
+                let mut out = g.cast(|_| T::zero());
+                for (k, &i) in self.ids.iter().enumerate() {
+                    let i = i as usize;
+                    out.sh_dc[i] = dc[k];
+                    out.sh_rest[i * rest_len..(i + 1) * rest_len]
+                        .copy_from_slice(&rest[k * stride..k * stride + rest_len]);
+                }
+                out
             })
             .collect();
-        let mut out = g.cast(|_| T::zero());
-        for (k, &i) in self.ids.iter().enumerate() {
-            let i = i as usize;
-            out.sh_dc[i] = dc[k];
-            out.sh_rest[i * rest_len..(i + 1) * rest_len]
-                .copy_from_slice(&rest[k * stride..k * stride + rest_len]);
-        }
-        Ok(out)
+        Ok(grads)
     }
 }

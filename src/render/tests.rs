@@ -691,6 +691,31 @@ fn a_replays_colour_gradient_is_the_rasterizers_and_its_geometry_gradient_is_zer
 }
 
 #[test]
+fn a_replays_gradients_taken_together_are_each_taken_alone() {
+    let (g, cam) = replay_scene(24, 300);
+    let opts = RenderOptions::default();
+    let h = recolour(&g, 9);
+    let replay = Replay::record(&g, &cam, &opts).unwrap();
+    let mut rng = Lcg(8);
+    let mut d = || -> Vec<[f32; 3]> {
+        (0..70 * 52)
+            .map(|_| std::array::from_fn(|_| rng.range(-1.0, 1.0) as f32))
+            .collect()
+    };
+    let (d1, d2) = (d(), d());
+    let both = replay.backward_each(&h, &[&d1, &d2]).unwrap();
+    assert_eq!(both.len(), 2);
+    assert_eq!(both[0], replay.backward(&h, &d1).unwrap());
+    assert_eq!(both[1], replay.backward(&h, &d2).unwrap());
+    assert_ne!(both[0], both[1]);
+    let short = vec![[0.0f32; 3]; 10];
+    assert!(matches!(
+        replay.backward_each(&h, &[&d1, &short]),
+        Err(RenderError::GradientSize { got: 10, .. })
+    ));
+}
+
+#[test]
 fn a_replay_refuses_moved_geometry_colour_overrides_and_wrong_gradients() {
     let (g, cam) = replay_scene(23, 50);
     let opts = RenderOptions::default();

@@ -457,8 +457,12 @@ pub fn finetune(
             let n = r.image().len();
             let d_wm = image_grad(&xs[k], &gw, n);
             let d_vis: Vec<[f32; 3]> = vis[k].1.iter().map(|d| d.map(|v| v * f)).collect();
-            add_into(&mut grad_wm, &renderer.backward(&g, r, &d_wm)?);
-            add_into(&mut grad_vis, &renderer.backward(&g, r, &d_vis)?);
+            let [by_wm, by_vis]: [Gaussians; 2] = renderer
+                .backward_each(&g, r, &[&d_wm, &d_vis])?
+                .try_into()
+                .expect("two gradients");
+            add_into(&mut grad_wm, &by_wm);
+            add_into(&mut grad_vis, &by_vis);
         }
         for (s, n) in wm_norm_sum
             .iter_mut()
@@ -570,7 +574,7 @@ pub fn finetune(
     // the mean PSNR of every training view, re-rendered, scaled back onto the bound.
     if cfg.target_psnr > 0.0 {
         for _ in 0..4 {
-            let psnr = views_psnr(&g, views, render_opts)?;
+            let psnr = views_psnr(&mut renderer, &g)?;
             if psnr >= cfg.target_psnr {
                 break;
             }

@@ -92,21 +92,18 @@ impl ViewsCheck {
 }
 
 /// PSNR (dB) of `g`'s renders of every view against the targets (pixels clamped to [0, 1],
-/// one MSE over all views).
-pub(super) fn views_psnr(
-    g: &Gaussians,
-    views: &[View],
-    opts: &RenderOptions,
-) -> Result<f32, RenderError> {
+/// one MSE over all views), through `renderer` (replayed where recorded: the same images).
+pub(super) fn views_psnr(renderer: &mut Renderer, g: &Gaussians) -> Result<f32, RenderError> {
     let (mut sq, mut n) = (0.0f64, 0usize);
-    for v in views {
-        let r = render::render(g, &v.camera, opts)?;
-        for (p, q) in r.image.iter().zip(&v.target) {
+    for v in 0..renderer.views.len() {
+        let frame = renderer.render(g, v)?;
+        let image = frame.image();
+        for (p, q) in image.iter().zip(&renderer.views[v].target) {
             for c in 0..3 {
                 sq += f64::from(p[c].clamp(0.0, 1.0) - q[c]).powi(2);
             }
         }
-        n += 3 * r.image.len();
+        n += 3 * image.len();
     }
     let mse = sq / n.max(1) as f64;
     Ok(if mse > 0.0 {
@@ -181,22 +178,26 @@ impl<'a> Renderer<'a> {
         )?)))
     }
 
-    /// ∂L/∂θ from ∂L/∂image of `frame` (scene-shaped; a replayed view gives the SH
-    /// coefficients' gradient only, the geometry being fixed).
-    pub fn backward(
+    /// ∂L/∂θ from each ∂L/∂image of `frame` in `d_images` (scene-shaped; a replayed view
+    /// gives the SH coefficients' gradient only, the geometry being fixed — all of them in one
+    /// pass over its weights).
+    pub fn backward_each(
         &self,
         g: &Gaussians,
         frame: &Frame,
-        d_image: &[[f32; 3]],
-    ) -> Result<Gaussians, RenderError> {
+        d_images: &[&[[f32; 3]]],
+    ) -> Result<Vec<Gaussians>, RenderError> {
         match frame {
-            Frame::Raster(r) => Ok(render::backward(g, r, d_image)?.params),
+            Frame::Raster(r) => d_images
+                .iter()
+                .map(|d| Ok(render::backward(g, r, d)?.params))
+                .collect(),
             Frame::Replayed { view, .. } => self
                 .replays
                 .as_ref()
                 .and_then(|r| r[*view].as_ref())
                 .expect("a replayed frame has its replay")
-                .backward(g, d_image),
+                .backward_each(g, d_images),
         }
     }
 }
