@@ -406,6 +406,46 @@ pub struct AttributionQuery {
 /// Largest attribution page.
 pub const MAX_PAGE: u32 = 10_000;
 
+/// One page of an attribution listing, as a client asked for it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct AttributionPage {
+    /// Only the Gaussians of this role.
+    pub role: Option<Role>,
+    /// Continue after this Gaussian index.
+    pub cursor: Option<u32>,
+    /// At most this many records, 1 to [`MAX_PAGE`].
+    pub limit: u32,
+}
+
+impl AttributionQuery {
+    /// The page this query asks for, checked as the handler checks it (400 for an unknown role
+    /// or a limit outside 1 to [`MAX_PAGE`]).
+    pub fn into_page(self) -> ApiResult<AttributionPage> {
+        let role = match self.role.as_deref() {
+            None => None,
+            Some("carrier") => Some(Role::Carrier),
+            Some("compensator") => Some(Role::Compensator),
+            Some("untouched") => Some(Role::Untouched),
+            Some(r) => {
+                return Err(ApiError::bad_request(format!(
+                    "role '{r}': expected carrier, compensator or untouched"
+                )));
+            }
+        };
+        let limit = self.limit.unwrap_or(1000);
+        if !(1..=MAX_PAGE).contains(&limit) {
+            return Err(ApiError::bad_request(format!(
+                "limit must be 1 to {MAX_PAGE}"
+            )));
+        }
+        Ok(AttributionPage {
+            role,
+            cursor: self.cursor,
+            limit,
+        })
+    }
+}
+
 async fn watermarked(st: &AppState, caller: &Caller, id: &str) -> ApiResult<Asset> {
     let a = readable(st, caller, parse_id(id)?).await?;
     if a.kind != AssetKind::Watermarked {
@@ -425,26 +465,10 @@ pub async fn attribution(
     Query(q): Query<AttributionQuery>,
 ) -> ApiResult<Response> {
     let a = watermarked(&st, &caller, &id).await?;
-    let role = match q.role.as_deref() {
-        None => None,
-        Some("carrier") => Some(Role::Carrier),
-        Some("compensator") => Some(Role::Compensator),
-        Some("untouched") => Some(Role::Untouched),
-        Some(r) => {
-            return Err(ApiError::bad_request(format!(
-                "role '{r}': expected carrier, compensator or untouched"
-            )));
-        }
-    };
-    let limit = q.limit.unwrap_or(1000);
-    if !(1..=MAX_PAGE).contains(&limit) {
-        return Err(ApiError::bad_request(format!(
-            "limit must be 1 to {MAX_PAGE}"
-        )));
-    }
+    let page = q.into_page()?;
     let (items, next) = st
         .store
-        .attribution_page(a.id, role, q.cursor, limit)
+        .attribution_page(a.id, page.role, page.cursor, page.limit)
         .await?;
     Ok(Json(json!({"items": items, "next_cursor": next})).into_response())
 }

@@ -10,7 +10,7 @@ use uuid::Uuid;
 use super::AppState;
 use super::auth::Caller;
 use super::error::{ApiError, ApiResult};
-use crate::store::{AuditFilter, Scope};
+use crate::store::{AuditFilter, MAX_AUDIT_PAGE, Scope};
 
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -40,6 +40,31 @@ fn check_time(name: &str, t: &Option<String>) -> ApiResult<()> {
     Ok(())
 }
 
+impl AuditQuery {
+    /// The store's filter for this query, checked as the handler checks it (400 for a time that
+    /// is not a real RFC 3339 UTC instant or a limit outside 1 to 1000), before anything is
+    /// queried.
+    pub fn into_filter(self) -> ApiResult<AuditFilter> {
+        check_time("since", &self.since)?;
+        check_time("until", &self.until)?;
+        let limit = self.limit.unwrap_or(100);
+        if !(1..=MAX_AUDIT_PAGE).contains(&limit) {
+            return Err(ApiError::bad_request(format!(
+                "limit must be 1 to {MAX_AUDIT_PAGE}"
+            )));
+        }
+        Ok(AuditFilter {
+            asset_id: self.asset_id,
+            action: self.action,
+            actor: self.actor,
+            since: self.since,
+            until: self.until,
+            after_id: self.cursor,
+            limit,
+        })
+    }
+}
+
 /// `GET /v1/audit`.
 pub async fn query(
     State(st): State<AppState>,
@@ -47,24 +72,7 @@ pub async fn query(
     Query(q): Query<AuditQuery>,
 ) -> ApiResult<Response> {
     caller.require(&[Scope::Auditor])?;
-    check_time("since", &q.since)?;
-    check_time("until", &q.until)?;
-    let limit = q.limit.unwrap_or(100);
-    if !(1..=1000).contains(&limit) {
-        return Err(ApiError::bad_request("limit must be 1 to 1000"));
-    }
-    let (items, next) = st
-        .store
-        .audit_query(&AuditFilter {
-            asset_id: q.asset_id,
-            action: q.action,
-            actor: q.actor,
-            since: q.since,
-            until: q.until,
-            after_id: q.cursor,
-            limit,
-        })
-        .await?;
+    let (items, next) = st.store.audit_query(&q.into_filter()?).await?;
     Ok(Json(json!({"items": items, "next_cursor": next})).into_response())
 }
 

@@ -78,7 +78,10 @@ async fn admit(
     .await
 }
 
-fn decode_image(bytes: &[u8], i: usize, max_side: u32) -> ApiResult<image::RgbImage> {
+/// Image `i` of a dispute, decoded as `/v1/verify` decodes it: PNG or JPEG by its content, each
+/// side at most `max_side` (checked from the header, before the pixels are allocated), at least
+/// 64 × 64, as 8-bit RGB; 422 otherwise.
+pub fn decode_image(bytes: &[u8], i: usize, max_side: u32) -> ApiResult<image::RgbImage> {
     let mut r = reader(bytes, i)?;
     let mut limits = image::Limits::default();
     limits.max_image_width = Some(max_side);
