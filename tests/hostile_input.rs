@@ -307,6 +307,15 @@ async fn hostile_corpus() {
         ("garbage.png", vec![0x42; 500]),
         ("tiny.png", tiny),
         ("scene.png", scene.clone()),
+        // A progressive JPEG on which the JPEG decoder panics (found by fuzz/).
+        (
+            "decoder_panic.jpg",
+            std::fs::read(
+                std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+                    .join("fuzz/regressions/image/zune_jpeg_progressive_upsample_panic.jpg"),
+            )
+            .unwrap(),
+        ),
     ];
     for (name, bytes) in images {
         let form = Form::new().part("image", Part::bytes(bytes).file_name(name));
