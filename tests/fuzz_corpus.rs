@@ -31,7 +31,10 @@ fn every_committed_fuzz_input_passes_its_targets_checks() {
                 per_target += 1;
             }
         }
-        assert!(per_target > 0, "no committed input for fuzz target {target}");
+        assert!(
+            per_target > 0,
+            "no committed input for fuzz target {target}"
+        );
         ran += per_target;
     }
     println!("{ran} committed fuzz inputs replayed");
