@@ -30,7 +30,8 @@ pub const CHUNK_SIZE: usize = 256;
 /// `SH_C0` at the precision PlayCanvas uses (JavaScript double).
 const SH_C0_F64: f64 = 0.282_094_791_773_878_14;
 
-const CHUNK_REQUIRED: [&str; 12] = [
+/// The chunk properties every SuperSplat compressed PLY declares.
+pub const CHUNK_REQUIRED: [&str; 12] = [
     "min_x",
     "min_y",
     "min_z",
@@ -45,7 +46,8 @@ const CHUNK_REQUIRED: [&str; 12] = [
     "max_scale_z",
 ];
 const CHUNK_COLOR: [&str; 6] = ["min_r", "min_g", "min_b", "max_r", "max_g", "max_b"];
-const PACKED: [&str; 4] = [
+/// The packed vertex properties of a SuperSplat compressed PLY.
+pub const PACKED: [&str; 4] = [
     "packed_position",
     "packed_rotation",
     "packed_scale",

@@ -66,29 +66,11 @@ fn scenes(dir: &Path) {
     put(dir, "scene", "big_endian.ply", &scene(1, &be));
     // SuperSplat compressed PLY: one chunk, 4 points.
     let mut h = String::from("ply\nformat binary_little_endian 1.0\nelement chunk 1\n");
-    for p in [
-        "min_x",
-        "min_y",
-        "min_z",
-        "max_x",
-        "max_y",
-        "max_z",
-        "min_scale_x",
-        "min_scale_y",
-        "min_scale_z",
-        "max_scale_x",
-        "max_scale_y",
-        "max_scale_z",
-    ] {
+    for p in splatmark::scene::compressed_ply::CHUNK_REQUIRED {
         h += &format!("property float {p}\n");
     }
     h += "element vertex 4\n";
-    for p in [
-        "packed_position",
-        "packed_rotation",
-        "packed_scale",
-        "packed_color",
-    ] {
+    for p in splatmark::scene::compressed_ply::PACKED {
         h += &format!("property uint {p}\n");
     }
     h += "end_header\n";
