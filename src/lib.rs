@@ -15,6 +15,7 @@ pub mod config;
 pub mod decoder;
 pub mod embed;
 pub mod http;
+pub mod image_file;
 pub mod queue;
 pub mod render;
 pub mod scene;

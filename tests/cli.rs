@@ -162,6 +162,25 @@ fn bad_input_fails_with_a_clear_message_and_writes_nothing() {
 }
 
 #[test]
+fn an_image_the_jpeg_decoder_panics_on_is_a_clear_error() {
+    // A fuzz finding: zune-jpeg asserts in its upsampler on this progressive JPEG.
+    let jpeg = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("fuzz/regressions/image/zune_jpeg_progressive_upsample_panic.jpg");
+    let out = bin()
+        .args(["decode", "--bits", "32"])
+        .arg(&jpeg)
+        .output()
+        .unwrap();
+    let msg = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{msg}");
+    assert!(
+        msg.contains("the image decoder failed on this file (malformed data)"),
+        "{msg}"
+    );
+    assert!(!msg.contains("panicked"), "{msg}");
+}
+
+#[test]
 fn convert_writes_an_inria_ply_that_reads_back_exactly() {
     let Some(d) = data() else { return };
     let out = tempfile::tempdir().unwrap();

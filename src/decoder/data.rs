@@ -181,7 +181,7 @@ impl Image {
 
     /// Decodes an image file (any colour type, converted to RGB).
     pub fn open(name: impl Into<String>, path: &Path) -> Result<Self, DataError> {
-        let img = image::open(path).map_err(|source| DataError::Decode {
+        let img = crate::image_file::open(path).map_err(|source| DataError::Decode {
             path: path.to_path_buf(),
             source,
         })?;

@@ -531,7 +531,7 @@ pub fn read_images(paths: &[impl AsRef<Path>]) -> Result<Vec<RgbImage>, WeightsE
         .iter()
         .map(|p| {
             let p = p.as_ref();
-            image::open(p)
+            crate::image_file::open(p)
                 .map(|i| i.to_rgb8())
                 .map_err(|source| WeightsError::Image {
                     path: p.to_path_buf(),

@@ -78,30 +78,6 @@ async fn admit(
     .await
 }
 
-thread_local! {
-    static QUIET_PANICS: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
-}
-
-/// `f`, with a panic caught instead of unwinding further — and not reported by the panic hook:
-/// the default hook would print it and, with `RUST_BACKTRACE` set, symbolise a backtrace, which
-/// costs ~300 MB of resident memory that is never given back (measured by the hostile corpus).
-/// Panics elsewhere, on any thread, are reported as before.
-fn without_panic_report<R>(f: impl FnOnce() -> R) -> std::thread::Result<R> {
-    static HOOK: std::sync::Once = std::sync::Once::new();
-    HOOK.call_once(|| {
-        let previous = std::panic::take_hook();
-        std::panic::set_hook(Box::new(move |info| {
-            if !QUIET_PANICS.with(std::cell::Cell::get) {
-                previous(info);
-            }
-        }));
-    });
-    QUIET_PANICS.with(|q| q.set(true));
-    let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(f));
-    QUIET_PANICS.with(|q| q.set(false));
-    r
-}
-
 /// Image `i` of a dispute, decoded as `/v1/verify` decodes it: PNG or JPEG by its content, each
 /// side at most `max_side` (checked from the header, before the pixels are allocated), at least
 /// 64 × 64, as 8-bit RGB; 422 otherwise.
@@ -111,14 +87,11 @@ pub fn decode_image(bytes: &[u8], i: usize, max_side: u32) -> ApiResult<image::R
     limits.max_image_width = Some(max_side);
     limits.max_image_height = Some(max_side);
     r.limits(limits);
-    // The JPEG decoder (zune-jpeg, through `image`) still panics on some malformed files
-    // instead of answering an error (an assertion in its upsampler: found by `fuzz/`, input in
-    // fuzz/regressions/image/); such a file is the client's error like any other bad image.
-    let decoded = without_panic_report(|| r.decode()).map_err(|_| {
+    // A file the JPEG decoder panics on is the client's error like any other bad image
+    // (`crate::image_file`).
+    let decoded = crate::image_file::guarded(|| r.decode()).map_err(|_| {
         tracing::warn!(image = i, "the image decoder panicked on a malformed file");
-        ApiError::unprocessable(format!(
-            "image {i}: the image decoder failed on this file (malformed data)"
-        ))
+        ApiError::unprocessable(format!("image {i}: {}", crate::image_file::DECODER_PANIC))
     })?;
     let img = decoded
         .map_err(|e| ApiError::unprocessable(format!("image {i}: {e}")))?
