@@ -67,6 +67,9 @@ impl App {
         );
         let verify_slots = Arc::new(tokio::sync::Semaphore::new(cfg.verify_concurrency.max(1)));
         let upload_slots = Arc::new(tokio::sync::Semaphore::new(cfg.upload_concurrency.max(1)));
+        let upload_memory = Arc::new(tokio::sync::Semaphore::new(
+            usize::try_from(cfg.upload_memory_kib()).unwrap_or(usize::MAX >> 4),
+        ));
         let state = AppState {
             store: store.clone(),
             cfg,
@@ -76,6 +79,7 @@ impl App {
             metrics: Arc::new(Metrics::default()),
             verify_slots,
             upload_slots,
+            upload_memory,
             limits: Arc::new(crate::http::limit::Limits::new(cfg_limits.0, cfg_limits.1)),
         };
         let app = router(state);

@@ -74,8 +74,14 @@ pub struct Config {
     /// to `upload_wait_ms`, then get 503 with `Retry-After`. Their bytes are spooled to disk
     /// meanwhile, not held in memory.
     pub upload_concurrency: usize,
-    /// How long an upload waits for a parsing slot, in milliseconds.
+    /// How long an upload waits for a parsing slot or for its memory, in milliseconds.
     pub upload_wait_ms: u64,
+    /// Memory the uploads being checked may take together, in MiB. Each reserves what reading
+    /// its files costs — the file, the decoded scene and the packed arrays, known from the
+    /// scene's header (`scene::cost`) — before it reads them; it waits up to `upload_wait_ms`
+    /// for that much to be free (then 503 with `Retry-After`), and one that needs more than the
+    /// whole budget is refused with 413.
+    pub upload_memory_mb: u64,
     /// A multipart body (upload, verification) that sends nothing for this long is answered
     /// 408 and dropped, in milliseconds (slow clients cannot hold a connection for the whole
     /// request timeout).
@@ -110,6 +116,16 @@ pub struct Config {
     pub log_json: bool,
 }
 
+/// Largest `upload_memory_mb`: the budget is counted in KiB, and a reservation must fit a u32.
+pub const MAX_UPLOAD_MEMORY_MB: u64 = 1 << 22;
+
+impl Config {
+    /// The upload memory budget in KiB (the unit of [`crate::http::AppState::upload_memory`]).
+    pub fn upload_memory_kib(&self) -> u64 {
+        self.upload_memory_mb.min(MAX_UPLOAD_MEMORY_MB) * 1024
+    }
+}
+
 impl Default for Config {
     fn default() -> Self {
         Self {
@@ -126,6 +142,7 @@ impl Default for Config {
             verify_wait_ms: 2000,
             upload_concurrency: 2,
             upload_wait_ms: 10_000,
+            upload_memory_mb: 4096,
             body_idle_timeout_ms: 30_000,
             header_timeout_ms: 10_000,
             verify_per_minute: 120,
@@ -236,6 +253,7 @@ impl Config {
         env!("SPLATMARK_MAX_VERIFY_PIXELS", self.max_verify_pixels);
         env!("SPLATMARK_VERIFY_CONCURRENCY", self.verify_concurrency);
         env!("SPLATMARK_UPLOAD_CONCURRENCY", self.upload_concurrency);
+        env!("SPLATMARK_UPLOAD_MEMORY_MB", self.upload_memory_mb);
         env!("SPLATMARK_LEASE_SECONDS", self.lease_seconds);
         env!("SPLATMARK_MAX_ATTEMPTS", self.max_attempts);
         env!("SPLATMARK_MASTER_KEY_FILE", some self.master_key_file);
@@ -280,6 +298,9 @@ impl Config {
         }
         if self.upload_concurrency == 0 {
             return bad("upload_concurrency must be at least 1");
+        }
+        if !(1..=MAX_UPLOAD_MEMORY_MB).contains(&self.upload_memory_mb) {
+            return bad("upload_memory_mb must be between 1 and 4194304 (4 TiB)");
         }
         if self.max_verify_pixels < 64 * 64 {
             return bad("max_verify_pixels must allow one 64×64 image");

@@ -97,6 +97,47 @@ async fn bad_uploads_get_4xx_problems_and_leave_nothing_behind() {
 }
 
 #[tokio::test]
+async fn uploads_are_checked_within_the_memory_budget() {
+    // 4 MiB for the uploads being checked: a 60 000-Gaussian .splat (1.9 MB) takes ≈ 5.5 MB
+    // to read (the file, the decoded scene, the header).
+    let mut t = TestApp::start_with(|c| c.upload_memory_mb = 4).await;
+    let k = t.keys().await;
+    let splat = |n: u32, y: f32| {
+        let mut b = Vec::new();
+        for i in 0..n {
+            for v in [i as f32 * 1e-5, y, 0.3, 0.02, 0.03, 0.04] {
+                b.extend_from_slice(&v.to_le_bytes());
+            }
+            b.extend_from_slice(&[200, 100, 50, 180, 255, 128, 128, 128]);
+        }
+        b
+    };
+    let r = t.upload(&k.owner, "large.splat", splat(60_000, -0.2)).await;
+    let p = assert_problem(r, StatusCode::PAYLOAD_TOO_LARGE).await;
+    let detail = p["detail"].as_str().unwrap();
+    assert!(
+        detail.contains("about 6 MiB") && detail.contains("within 4 MiB (upload_memory_mb)"),
+        "{p}"
+    );
+    // Refused before it was read: nothing stored or audited.
+    assert!(stored_blobs(&t.data()).is_empty());
+    let audit: Value = t
+        .get(&k.auditor, "/v1/audit?action=asset.upload")
+        .await
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(audit["items"].as_array().unwrap().len(), 0);
+    // Scenes that fit are checked and stored, each giving its memory back: 25 000 Gaussians
+    // take ≈ 2.5 MB, so the second fits only once the first has returned its reservation.
+    for (name, y) in [("a.splat", 0.1), ("b.splat", 0.2), ("c.splat", 0.3)] {
+        let r = t.upload(&k.owner, name, splat(25_000, y)).await;
+        assert_eq!(r.status(), StatusCode::CREATED, "{name}");
+    }
+    t.stop().await;
+}
+
+#[tokio::test]
 async fn missing_or_wrong_scopes_are_401_and_403() {
     let mut t = TestApp::start().await;
     let k = t.keys().await;

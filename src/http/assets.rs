@@ -19,7 +19,7 @@ use super::error::{ApiError, ApiResult};
 use crate::embed::sbag::Role;
 use crate::scene::camera::read_cameras_bytes;
 use crate::scene::format::{detect_format, read_as};
-use crate::scene::{Limits, SceneError};
+use crate::scene::{Limits, SceneError, cost};
 use crate::store::{Asset, AssetKind, AuditEntry, NewAsset, Scope};
 
 /// A multipart field's failure as a client error.
@@ -110,6 +110,36 @@ struct Checked {
     gaussians: u64,
     sh_degree: u8,
     cameras: Option<(usize, String)>,
+}
+
+/// What checking the spooled files will hold in memory at its peak, in bytes, from the scene's
+/// header and the files' sizes (`scene::cost`; nothing but the scene's first bytes is read).
+/// A scene declaring more Gaussians than the limit is refused here, before anything is reserved.
+fn reservation(
+    scene: &std::path::Path,
+    scene_name: Option<&str>,
+    cameras: Option<&std::path::Path>,
+    limits: &Limits,
+) -> Result<u64, ApiError> {
+    use std::io::Read;
+    let len = std::fs::metadata(scene).map_err(ApiError::internal)?.len();
+    if len == 0 {
+        return Err(ApiError::unprocessable("the scene file is empty"));
+    }
+    let mut prefix = Vec::new();
+    std::fs::File::open(scene)
+        .and_then(|f| f.take(cost::PROBE_BYTES as u64).read_to_end(&mut prefix))
+        .map_err(ApiError::internal)?;
+    let hint = scene_name.and_then(|n| n.rsplit_once('.').map(|(_, e)| e));
+    let declared = cost::declared(&prefix, len, hint)?;
+    limits.check_count(declared.count)?;
+    let cams = match cameras {
+        Some(p) => {
+            cost::cameras_read_bytes(std::fs::metadata(p).map_err(ApiError::internal)?.len())
+        }
+        None => 0,
+    };
+    Ok(declared.read_bytes(len).saturating_add(cams))
 }
 
 /// Validates the spooled files with the scene and camera readers (`cameras`: the spooled file and
@@ -217,7 +247,35 @@ pub async fn upload(
         max_gaussians: st.cfg.max_gaussians,
         max_file_bytes: Some(budget),
     };
-    // A parse holds the decoded scene in memory: at most `upload_concurrency` at once.
+    // Reading the files holds them and the decoded scene in memory: what that costs is
+    // reserved from the upload memory budget first (413 past the whole budget, 503 while it is
+    // in use), and at most `upload_concurrency` parses run at once.
+    let need = {
+        let (scene, name) = (scene.path().to_path_buf(), scene_name.clone());
+        let cams = cameras.as_ref().map(|(t, _)| t.path().to_path_buf());
+        tokio::task::spawn_blocking(move || {
+            reservation(&scene, name.as_deref(), cams.as_deref(), &limits)
+        })
+        .await
+        .map_err(ApiError::internal)??
+    };
+    let need_kib = need.div_ceil(1024);
+    let budget_kib = st.cfg.upload_memory_kib();
+    if need_kib > budget_kib {
+        return Err(ApiError::too_large(format!(
+            "checking this upload takes about {} MiB of memory; this server checks uploads \
+             within {} MiB (upload_memory_mb)",
+            need_kib.div_ceil(1024),
+            budget_kib / 1024
+        )));
+    }
+    let memory = super::admit_many(
+        &st.upload_memory,
+        u32::try_from(need_kib).map_err(ApiError::internal)?,
+        std::time::Duration::from_millis(st.cfg.upload_wait_ms),
+        "the memory for checking uploads is in use by other uploads; retry shortly",
+    )
+    .await?;
     let permit = super::admit(
         &st.upload_slots,
         std::time::Duration::from_millis(st.cfg.upload_wait_ms),
@@ -227,7 +285,7 @@ pub async fn upload(
     let blobs = st.store.blobs().clone();
     let name = scene_name.clone();
     let (checked, pins, committed) = tokio::task::spawn_blocking(move || {
-        let _permit = permit; // held until the parse and the blob commit end
+        let _held = (permit, memory); // until the parse and the blob commit end
         let checked = check(
             scene.path(),
             name.as_deref(),

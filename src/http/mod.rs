@@ -47,6 +47,9 @@ pub struct AppState {
     pub verify_slots: Arc<tokio::sync::Semaphore>,
     /// Parsing slots of `POST /v1/assets` (`upload_concurrency` permits).
     pub upload_slots: Arc<tokio::sync::Semaphore>,
+    /// The memory of the uploads being checked, in KiB (`upload_memory_mb`): each holds what
+    /// reading its files costs while it reads them.
+    pub upload_memory: Arc<tokio::sync::Semaphore>,
     /// Rate limits (`verify_per_minute`, `auth_failures_per_minute`).
     pub limits: Arc<limit::Limits>,
 }
@@ -58,7 +61,17 @@ pub(crate) async fn admit(
     wait: std::time::Duration,
     busy: &str,
 ) -> error::ApiResult<tokio::sync::OwnedSemaphorePermit> {
-    match tokio::time::timeout(wait, slots.clone().acquire_owned()).await {
+    admit_many(slots, 1, wait, busy).await
+}
+
+/// Like [`admit`], for `n` permits at once.
+pub(crate) async fn admit_many(
+    slots: &Arc<tokio::sync::Semaphore>,
+    n: u32,
+    wait: std::time::Duration,
+    busy: &str,
+) -> error::ApiResult<tokio::sync::OwnedSemaphorePermit> {
+    match tokio::time::timeout(wait, slots.clone().acquire_many_owned(n)).await {
         Ok(Ok(permit)) => Ok(permit),
         _ => Err(error::ApiError::busy(busy, 1)),
     }

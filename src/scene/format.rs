@@ -90,7 +90,7 @@ impl std::fmt::Display for Format {
 
 /// Resource limits applied while reading untrusted scene files (serde: missing fields take the
 /// defaults).
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct Limits {
     /// Largest number of Gaussians a file may declare (checked before allocating).

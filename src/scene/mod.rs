@@ -8,6 +8,7 @@ mod gaussians;
 pub mod bounds;
 pub mod camera;
 pub mod compressed_ply;
+pub mod cost;
 pub mod format;
 pub mod orbit;
 pub mod ply;

@@ -207,6 +207,34 @@ fn read_full(r: &mut impl Read, buf: &mut [u8], what: &str) -> Result<usize, Sce
     Ok(got)
 }
 
+/// The point count and SH degree an `.spz` file declares, from its first bytes (`prefix`; a
+/// compressed stream is decompressed only as far as its 16-byte header). Nothing is checked
+/// beyond the magic: [`read`] checks the rest.
+pub fn declared(prefix: &[u8]) -> Result<(u64, u8), SceneError> {
+    let mut hdr = [0u8; LEGACY_HEADER_BYTES];
+    let got = if prefix.starts_with(&[0x1f, 0x8b]) {
+        read_full(&mut flate2::read::GzDecoder::new(prefix), &mut hdr, "gzip")?
+    } else if prefix.starts_with(&[0x28, 0xb5, 0x2f, 0xfd]) {
+        let mut dec =
+            zstd::stream::read::Decoder::with_buffer(prefix).map_err(|e| corrupt_io("zstd", e))?;
+        read_full(&mut dec, &mut hdr, "zstd")?
+    } else {
+        read_full(&mut &prefix[..], &mut hdr, "spz")?
+    };
+    if got < LEGACY_HEADER_BYTES {
+        return Err(SceneError::Truncated {
+            expected: LEGACY_HEADER_BYTES as u64,
+            actual: got as u64,
+        });
+    }
+    if hdr[..4] != NGSP_MAGIC {
+        return Err(SceneError::Corrupt(
+            "the stream does not start with the spz magic 'NGSP'".into(),
+        ));
+    }
+    Ok((u64::from(u32_at(&hdr, 8)), hdr[12]))
+}
+
 /// Reads a `.spz` file (any supported container).
 pub fn read(bytes: &[u8], limits: &Limits) -> Result<Gaussians, SceneError> {
     let compressed = Some(bytes.len() as u64);
