@@ -351,13 +351,14 @@ pub(crate) struct ViewArgs {
     #[arg(long, conflicts_with = "orbit")]
     cameras: Option<PathBuf>,
     /// N orbit views around the scene's robust bounds instead (default when no --cameras is
-    /// given: 24).
+    /// given: 24, as the service).
     #[arg(long)]
     orbit: Option<usize>,
-    /// Image width (orbit default 800; with --cameras the camera's own width, intrinsics scaled).
+    /// Image width (orbit default 512, as the service; with --cameras the camera's own width,
+    /// intrinsics scaled).
     #[arg(long)]
     width: Option<u32>,
-    /// Image height (orbit default 800; with --cameras the camera's own height).
+    /// Image height (orbit default 512, as the service; with --cameras the camera's own height).
     #[arg(long)]
     height: Option<u32>,
     /// Orbit: the scene's up axis (+x, -x, +y, -y, +z, -z).
@@ -385,10 +386,12 @@ impl ViewArgs {
                 resize_all(cams, self.width, self.height)
             }
             None => {
+                // The service's defaults for uploads without cameras: the CLI embeds as a job does.
+                let d = crate::config::ViewDefaults::default();
                 let mut o = OrbitOptions {
-                    count: self.orbit.unwrap_or(24),
-                    width: self.width.unwrap_or(800),
-                    height: self.height.unwrap_or(800),
+                    count: self.orbit.unwrap_or(d.orbit),
+                    width: self.width.unwrap_or(d.width),
+                    height: self.height.unwrap_or(d.height),
                     fov_y_deg: self.fov,
                     up: self.up,
                     azimuth_offset_deg: self.azimuth_offset,

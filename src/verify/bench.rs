@@ -71,7 +71,8 @@ pub struct QualityOptions {
     /// Names from [`shared_scenes`].
     pub scenes: Vec<String>,
     pub bits: Vec<usize>,
-    /// Render side (training and evaluation), pixels; the CLI's default is 800.
+    /// Render side (training and evaluation), pixels: by default the orbit side of the CLI and
+    /// the service (`config::ViewDefaults`, 512).
     pub size: u32,
     /// Orbit views the CLI trains on (its default 24) …
     pub train_views: usize,
@@ -101,7 +102,7 @@ impl QualityOptions {
             scenes_dir,
             scenes: shared_scenes().into_iter().map(|s| s.name).collect(),
             bits: vec![32, 48, 64],
-            size: 800,
+            size: crate::config::ViewDefaults::default().width,
             train_views: 24,
             holdout_every: 8,
             holdout_every_cameras: 4,
