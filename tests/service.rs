@@ -759,6 +759,83 @@ async fn a_client_trickling_its_request_header_is_cut_off() {
 }
 
 #[tokio::test]
+async fn every_response_carries_the_security_headers_and_no_cors() {
+    let mut t = TestApp::start().await;
+    let k = t.keys().await;
+    let r = t
+        .upload(&k.owner, "a.ply", ply_bytes(&object_scene(50, 0, 1)))
+        .await;
+    assert_eq!(r.status(), StatusCode::CREATED);
+    let id = r.json::<Value>().await.unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let evil = "https://evil.example";
+    let responses = [
+        // JSON, a problem, a 404 of no route, the unauthenticated health check, a created key.
+        t.client
+            .get(t.url(&format!("/v1/assets/{id}")))
+            .bearer_auth(&k.owner)
+            .header("origin", evil)
+            .send()
+            .await
+            .unwrap(),
+        t.client
+            .get(t.url("/v1/audit"))
+            .header("origin", evil)
+            .send()
+            .await
+            .unwrap(),
+        t.get(&k.owner, "/no/such/route").await,
+        t.client.get(t.url("/healthz")).send().await.unwrap(),
+        t.client
+            .post(t.url("/v1/keys"))
+            .bearer_auth(&t.admin)
+            .json(&serde_json::json!({"name": "v", "scopes": ["verifier"]}))
+            .send()
+            .await
+            .unwrap(),
+    ];
+    let statuses: Vec<u16> = responses.iter().map(|r| r.status().as_u16()).collect();
+    assert_eq!(statuses, [200, 401, 404, 200, 201]);
+    for r in &responses {
+        let h = r.headers();
+        for &(name, value) in splatmark::http::SECURITY_HEADERS {
+            assert_eq!(
+                h.get(name).and_then(|v| v.to_str().ok()),
+                Some(value),
+                "{} {}: {name}",
+                r.status(),
+                r.url()
+            );
+        }
+        assert!(
+            h.get("access-control-allow-origin").is_none(),
+            "{}",
+            r.url()
+        );
+    }
+    // A browser's CORS preflight is refused and allows nothing.
+    let r = t
+        .client
+        .request(reqwest::Method::OPTIONS, t.url("/v1/verify"))
+        .header("origin", evil)
+        .header("access-control-request-method", "POST")
+        .header("access-control-request-headers", "authorization")
+        .send()
+        .await
+        .unwrap();
+    assert!(!r.status().is_success(), "{}", r.status());
+    assert!(r.headers().get("access-control-allow-origin").is_none());
+    assert!(r.headers().get("access-control-allow-methods").is_none());
+    // The scene file: the owner's client may keep it and revalidate by ETag, shared caches not.
+    let f = t.get(&k.owner, &format!("/v1/assets/{id}/file")).await;
+    assert_eq!(f.headers()["cache-control"], "private, no-cache");
+    assert_eq!(f.headers()["x-content-type-options"], "nosniff");
+    t.stop().await;
+}
+
+#[tokio::test]
 async fn malformed_requests_get_problem_json_like_every_other_error() {
     let mut t = TestApp::start().await;
     let k = t.keys().await;

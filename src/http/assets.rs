@@ -425,7 +425,15 @@ pub async fn file(
         .get(header::IF_NONE_MATCH)
         .is_some_and(|v| v.as_bytes() == etag.as_bytes())
     {
-        return Ok(StatusCode::NOT_MODIFIED.into_response());
+        let mut r = StatusCode::NOT_MODIFIED.into_response();
+        r.headers_mut().insert(
+            header::CACHE_CONTROL,
+            HeaderValue::from_static("private, no-cache"),
+        );
+        if let Ok(v) = HeaderValue::from_str(&etag) {
+            r.headers_mut().insert(header::ETAG, v);
+        }
+        return Ok(r);
     }
     let path = st.store.blobs().path(&a.sha256)?;
     let f = tokio::fs::File::open(&path)
@@ -447,6 +455,11 @@ pub async fn file(
     if let Ok(v) = HeaderValue::from_str(&etag) {
         h.insert(header::ETAG, v);
     }
+    // The owner's client may keep the file and revalidate it by its ETag; shared caches not.
+    h.insert(
+        header::CACHE_CONTROL,
+        HeaderValue::from_static("private, no-cache"),
+    );
     if let Ok(v) = HeaderValue::from_str(&format!("attachment; filename=\"{}.{ext}\"", a.id)) {
         h.insert(header::CONTENT_DISPOSITION, v);
     }

@@ -142,6 +142,37 @@ async fn count(State(m): State<Arc<Metrics>>, req: Request, next: Next) -> Respo
     r
 }
 
+/// Headers every response carries: the API serves JSON and files, never a page, so a browser
+/// must not sniff a type, frame it, send a referrer from it or load it cross-origin; and nothing
+/// is cached unless a handler says otherwise (a created API key's token, a message, an audit
+/// page are not for shared caches). No CORS header is ever set: browsers keep cross-origin pages
+/// out (a preflight `OPTIONS` gets 405). TLS and HSTS belong to the proxy in front.
+pub const SECURITY_HEADERS: &[(&str, &str)] = &[
+    ("x-content-type-options", "nosniff"),
+    ("x-frame-options", "DENY"),
+    (
+        "content-security-policy",
+        "default-src 'none'; frame-ancestors 'none'",
+    ),
+    ("referrer-policy", "no-referrer"),
+    ("cross-origin-resource-policy", "same-origin"),
+    ("cache-control", "no-store"),
+];
+
+async fn security_headers(req: Request, next: Next) -> Response {
+    let mut r = next.run(req).await;
+    let h = r.headers_mut();
+    for &(name, value) in SECURITY_HEADERS {
+        if !h.contains_key(name) {
+            h.insert(
+                axum::http::HeaderName::from_static(name),
+                axum::http::HeaderValue::from_static(value),
+            );
+        }
+    }
+    r
+}
+
 /// Every route (method, path) — the OpenAPI spec must list exactly these (tested).
 pub const ROUTES: &[(&str, &str)] = &[
     ("post", "/v1/assets"),
@@ -201,5 +232,6 @@ pub fn router(state: AppState) -> Router {
             Duration::from_secs(600),
         ))
         .layer(middleware::from_fn(error::as_problem))
+        .layer(middleware::from_fn(security_headers))
         .layer(TraceLayer::new_for_http())
 }
