@@ -35,13 +35,14 @@ secs=${2:?usage: scripts/fuzz.sh TARGET SECONDS [JOBS]}
 jobs=${3:-1}
 [ -x "$bin/$target" ] || { echo "no fuzz target '$target'" >&2; exit 2; }
 out="$FUZZ_DIR/out/$target"
-input="corpus/$target"
-[ -f "$out/main/fuzzer_stats" ] && input=-   # resume
 export AFL_SKIP_CPUFREQ=1 AFL_NO_UI=1 AFL_I_DONT_CARE_ABOUT_MISSING_CRASHES=1 AFL_NO_AFFINITY=1
 mkdir -p "$out"
 pids=()
 for k in $(seq 1 "$jobs"); do
-  role=(-S "s$k"); [ "$k" = 1 ] && role=(-M main)
+  name="s$k"; [ "$k" = 1 ] && name=main
+  role=(-S "$name"); [ "$k" = 1 ] && role=(-M main)
+  # An instance that ran before resumes its queue; a new one starts from the seeds.
+  input="corpus/$target"; [ -f "$out/$name/fuzzer_stats" ] && input=-
   cargo afl fuzz -i "$input" -o "$out" -m 1024 -t 1000 -V "$secs" "${role[@]}" "$bin/$target" \
     >"$out/log.$k" 2>&1 &
   pids+=($!)
