@@ -4,7 +4,7 @@
 
 use reqwest::StatusCode;
 use reqwest::multipart::{Form, Part};
-use serde_json::{Value, json};
+use serde_json::json;
 
 use splatmark::scene::synthetic::object_scene;
 
@@ -336,13 +336,7 @@ async fn hostile_corpus() {
     // No 5xx, nothing stored beyond the warm-up's upload, no upload audited but that one.
     assert_eq!(responses_of_class(&t, "5xx").await, before_5xx);
     assert_eq!(stored_blobs(&t.data()), kept);
-    let audit: Value = t
-        .get(&k.auditor, "/v1/audit?action=asset.upload")
-        .await
-        .json()
-        .await
-        .unwrap();
-    assert_eq!(audit["items"].as_array().unwrap().len(), 1);
+    assert_eq!(t.audited(&k.auditor, "asset.upload").await, 1);
     // Memory: the whole corpus leaves the process within 64 MB of where it started.
     if let (Some(a), Some(b)) = (before_rss, rss_bytes()) {
         let grown = b.saturating_sub(a);

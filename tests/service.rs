@@ -83,13 +83,7 @@ async fn bad_uploads_get_4xx_problems_and_leave_nothing_behind() {
         "{:?}",
         stored_blobs(&t.data())
     );
-    let audit: Value = t
-        .get(&k.auditor, "/v1/audit?action=asset.upload")
-        .await
-        .json()
-        .await
-        .unwrap();
-    assert_eq!(audit["items"].as_array().unwrap().len(), 0);
+    assert_eq!(t.audited(&k.auditor, "asset.upload").await, 0);
     // …and a good upload still works.
     let r = t.upload(&k.owner, "ok.ply", good).await;
     assert_eq!(r.status(), StatusCode::CREATED);
@@ -121,13 +115,7 @@ async fn uploads_are_checked_within_the_memory_budget() {
     );
     // Refused before it was read: nothing stored or audited.
     assert!(stored_blobs(&t.data()).is_empty());
-    let audit: Value = t
-        .get(&k.auditor, "/v1/audit?action=asset.upload")
-        .await
-        .json()
-        .await
-        .unwrap();
-    assert_eq!(audit["items"].as_array().unwrap().len(), 0);
+    assert_eq!(t.audited(&k.auditor, "asset.upload").await, 0);
     // Scenes that fit are checked and stored, each giving its memory back: 25 000 Gaussians
     // take ≈ 2.5 MB, so the second fits only once the first has returned its reservation.
     for (name, y) in [("a.splat", 0.1), ("b.splat", 0.2), ("c.splat", 0.3)] {
@@ -480,13 +468,7 @@ async fn every_supported_scene_format_uploads_and_round_trips() {
             "{name}: the download differs"
         );
     }
-    let audit: Value = t
-        .get(&k.auditor, "/v1/audit?action=asset.upload")
-        .await
-        .json()
-        .await
-        .unwrap();
-    assert_eq!(audit["items"].as_array().unwrap().len(), 4);
+    assert_eq!(t.audited(&k.auditor, "asset.upload").await, 4);
     t.stop().await;
 }
 
@@ -558,13 +540,7 @@ async fn an_upload_whose_insert_fails_leaves_no_blob_behind() {
     let f = t.get(&k.owner, &format!("/v1/assets/{kept_id}/file")).await;
     assert_eq!(f.status(), StatusCode::OK);
     assert!(f.bytes().await.unwrap() == kept);
-    let audit: Value = t
-        .get(&k.auditor, "/v1/audit?action=asset.upload")
-        .await
-        .json()
-        .await
-        .unwrap();
-    assert_eq!(audit["items"].as_array().unwrap().len(), 1);
+    assert_eq!(t.audited(&k.auditor, "asset.upload").await, 1);
     let r = t.upload(&k.owner, "new.splat", splat_bytes(50)).await;
     assert_eq!(r.status(), StatusCode::CREATED);
     t.stop().await;

@@ -112,6 +112,11 @@ struct Checked {
     cameras: Option<(usize, String)>,
 }
 
+/// The extension of the file name a client gave, the readers' hint for `.splat`.
+fn extension(name: Option<&str>) -> Option<&str> {
+    name.and_then(|n| n.rsplit_once('.').map(|(_, e)| e))
+}
+
 /// What checking the spooled files will hold in memory at its peak, in bytes, from the scene's
 /// header and the files' sizes (`scene::cost`; nothing but the scene's first bytes is read).
 /// A scene declaring more Gaussians than the limit is refused here, before anything is reserved.
@@ -130,7 +135,7 @@ fn reservation(
     std::fs::File::open(scene)
         .and_then(|f| f.take(cost::PROBE_BYTES as u64).read_to_end(&mut prefix))
         .map_err(ApiError::internal)?;
-    let hint = scene_name.and_then(|n| n.rsplit_once('.').map(|(_, e)| e));
+    let hint = extension(scene_name);
     let declared = cost::declared(&prefix, len, hint)?;
     limits.check_count(declared.count)?;
     let cams = match cameras {
@@ -154,7 +159,7 @@ fn check(
     if bytes.is_empty() {
         return Err(ApiError::unprocessable("the scene file is empty"));
     }
-    let hint = scene_name.and_then(|n| n.rsplit_once('.').map(|(_, e)| e));
+    let hint = extension(scene_name);
     let format = detect_format(&bytes, hint)?;
     let g = read_as(&bytes, format, limits)?;
     if g.is_empty() {

@@ -211,28 +211,17 @@ fn read_full(r: &mut impl Read, buf: &mut [u8], what: &str) -> Result<usize, Sce
 /// compressed stream is decompressed only as far as its 16-byte header). Nothing is checked
 /// beyond the magic: [`read`] checks the rest.
 pub fn declared(prefix: &[u8]) -> Result<(u64, u8), SceneError> {
-    let mut hdr = [0u8; LEGACY_HEADER_BYTES];
-    let got = if prefix.starts_with(&[0x1f, 0x8b]) {
-        read_full(&mut flate2::read::GzDecoder::new(prefix), &mut hdr, "gzip")?
+    let h = if prefix.starts_with(&[0x1f, 0x8b]) {
+        legacy_header(&mut flate2::read::GzDecoder::new(prefix), "gzip")?
     } else if prefix.starts_with(&[0x28, 0xb5, 0x2f, 0xfd]) {
         let mut dec =
             zstd::stream::read::Decoder::with_buffer(prefix).map_err(|e| corrupt_io("zstd", e))?;
-        read_full(&mut dec, &mut hdr, "zstd")?
+        legacy_header(&mut dec, "zstd")?
     } else {
-        read_full(&mut &prefix[..], &mut hdr, "spz")?
+        // A plain stream; version 4's header starts the same way.
+        legacy_header(&mut &prefix[..], "spz")?
     };
-    if got < LEGACY_HEADER_BYTES {
-        return Err(SceneError::Truncated {
-            expected: LEGACY_HEADER_BYTES as u64,
-            actual: got as u64,
-        });
-    }
-    if hdr[..4] != NGSP_MAGIC {
-        return Err(SceneError::Corrupt(
-            "the stream does not start with the spz magic 'NGSP'".into(),
-        ));
-    }
-    Ok((u64::from(u32_at(&hdr, 8)), hdr[12]))
+    Ok((u64::from(h.num_points), h.sh_degree))
 }
 
 /// Reads a `.spz` file (any supported container).
@@ -268,16 +257,10 @@ pub fn read(bytes: &[u8], limits: &Limits) -> Result<Gaussians, SceneError> {
     }
 }
 
-/// A legacy stream (16-byte header + arrays), from a decompressing reader of a file of
-/// `compressed` bytes (`None`: not compressed).
-fn read_legacy<R: Read>(
-    mut r: R,
-    limits: &Limits,
-    what: &str,
-    compressed: Option<u64>,
-) -> Result<Gaussians, SceneError> {
+/// The 16-byte header a legacy stream starts with, its magic checked.
+fn legacy_header(r: &mut impl Read, what: &str) -> Result<SpzHeader, SceneError> {
     let mut hdr = [0u8; LEGACY_HEADER_BYTES];
-    let got = read_full(&mut r, &mut hdr, what)?;
+    let got = read_full(r, &mut hdr, what)?;
     if got < LEGACY_HEADER_BYTES {
         return Err(SceneError::Truncated {
             expected: LEGACY_HEADER_BYTES as u64,
@@ -289,12 +272,23 @@ fn read_legacy<R: Read>(
             "{what} stream does not start with the spz magic 'NGSP'"
         )));
     }
-    let h = SpzHeader {
+    Ok(SpzHeader {
         version: u32_at(&hdr, 4),
         num_points: u32_at(&hdr, 8),
         sh_degree: hdr[12],
         fractional_bits: hdr[13],
-    };
+    })
+}
+
+/// A legacy stream (16-byte header + arrays), from a decompressing reader of a file of
+/// `compressed` bytes (`None`: not compressed).
+fn read_legacy<R: Read>(
+    mut r: R,
+    limits: &Limits,
+    what: &str,
+    compressed: Option<u64>,
+) -> Result<Gaussians, SceneError> {
+    let h = legacy_header(&mut r, what)?;
     if h.version >= 4 {
         return Err(SceneError::Unsupported(format!(
             "spz version {} inside a {what} stream (version 4 files are not compressed as a whole)",

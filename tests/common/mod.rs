@@ -119,6 +119,17 @@ impl TestApp {
             .unwrap()
     }
 
+    /// How many audit rows of `action` the first page of `/v1/audit` lists (read with `token`).
+    pub async fn audited(&self, token: &str, action: &str) -> usize {
+        let page: Value = self
+            .get(token, &format!("/v1/audit?action={action}"))
+            .await
+            .json()
+            .await
+            .unwrap();
+        page["items"].as_array().unwrap().len()
+    }
+
     pub async fn get(&self, token: &str, path: &str) -> reqwest::Response {
         self.client
             .get(self.url(path))
