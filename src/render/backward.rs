@@ -22,6 +22,9 @@ pub struct Gradients<T> {
     pub colors: Vec<[T; 3]>,
     /// Σ_p α_i·T_i over the pixels of this view (0 for Gaussians not seen).
     pub blend_weights: Vec<T>,
+    /// ∂L/∂(x, y) of each Gaussian's projected centre in pixels (0 for Gaussians not seen):
+    /// the view-space positional gradient that 3D-GS densification thresholds.
+    pub screen_xy: Vec<[T; 2]>,
 }
 
 /// Back-propagates `d_image` (∂L/∂pixel, row-major RGB like [`Rendered::image`]) through the
@@ -105,6 +108,7 @@ pub fn backward<T: Real>(
     };
     let mut blend_weights = vec![T::zero(); n];
     let mut colors = vec![z3; n];
+    let mut screen_xy = vec![[T::zero(); 2]; n];
     for (k, (s, pg)) in st.splats.iter().zip(grads).enumerate() {
         let i = s.id as usize;
         params.means[i] = pg.mean;
@@ -116,11 +120,13 @@ pub fn backward<T: Real>(
             .copy_from_slice(&rest[k * stride..k * stride + rest_len]);
         blend_weights[i] = per_splat[k].1;
         colors[i] = per_splat[k].0.color;
+        screen_xy[i] = per_splat[k].0.xy;
     }
     Ok(Gradients {
         params,
         colors,
         blend_weights,
+        screen_xy,
     })
 }
 

@@ -183,6 +183,18 @@ pub struct Rendered<T> {
     pub(crate) state: State<T>,
 }
 
+impl<T: Real> Rendered<T> {
+    /// Screen radius in pixels of every Gaussian drawn, as (index in the scene, radius): half
+    /// the longer side of the pixel rectangle its α ≥ 1/255 footprint covers on screen (INRIA's
+    /// `radii`, which 3D-GS densification uses to prune Gaussians grown too large on screen).
+    pub fn screen_radii(&self) -> impl Iterator<Item = (usize, f32)> + '_ {
+        self.state.splats.iter().map(|s| {
+            let [x0, y0, x1, y1] = s.rect;
+            (s.id as usize, 0.5 * (x1 - x0).max(y1 - y0) as f32)
+        })
+    }
+}
+
 /// What the backward pass needs from the forward pass.
 pub(crate) struct State<T> {
     pub cam: Cam<T>,

@@ -7,6 +7,7 @@ mod gaussians;
 
 pub mod bounds;
 pub mod camera;
+pub mod colmap;
 pub mod compressed_ply;
 pub mod cost;
 pub mod format;

@@ -8,11 +8,16 @@
 use crate::scene::Gaussians;
 
 /// SplitMix64: a tiny, well-distributed generator with a fixed stream per seed.
+#[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Rng(u64);
 
 impl Rng {
     pub fn new(seed: u64) -> Self {
         Self(seed)
+    }
+    /// The generator's whole state: `Rng::new(r.state())` continues `r`'s stream exactly.
+    pub fn state(&self) -> u64 {
+        self.0
     }
     pub fn next_u64(&mut self) -> u64 {
         self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);

@@ -64,6 +64,8 @@ mod tests;
 mod views;
 mod visual;
 
+pub(crate) use visual::reconstruction_loss;
+
 pub use config::{FinetuneConfig, LearningRates, LossWeights, StepRule};
 pub use losses::ssim;
 use losses::{Margin, as_saved, band_l1, from_planar, to_tensor, views_bce};

@@ -334,6 +334,39 @@ pub(super) fn visual_loss(
     weights: &LossWeights,
     levels: usize,
 ) -> (f64, Vec<[f32; 3]>) {
+    image_loss(y, t, w, h, weights, levels, true)
+}
+
+/// 3D-GS's reconstruction loss `rec·mean|y − t| + dssim·(1 − mean SSIM(y, t))` of one view and
+/// its gradient, on the render as it is (not clamped, as INRIA's training computes it), for
+/// fitting a scene to photographs ([`crate::fit`]).
+pub(crate) fn reconstruction_loss(
+    y: &[[f32; 3]],
+    t: &[[f32; 3]],
+    w: usize,
+    h: usize,
+    rec: f32,
+    dssim: f32,
+) -> (f64, Vec<[f32; 3]>) {
+    let weights = LossWeights {
+        rec,
+        dssim,
+        wav_high: 0.0,
+        ..LossWeights::default()
+    };
+    image_loss(y, t, w, h, &weights, 0, false)
+}
+
+/// L_vis with ŷ = clamp(y, 0, 1) when `clamp` is set, ŷ = y otherwise.
+fn image_loss(
+    y: &[[f32; 3]],
+    t: &[[f32; 3]],
+    w: usize,
+    h: usize,
+    weights: &LossWeights,
+    levels: usize,
+    clamp: bool,
+) -> (f64, Vec<[f32; 3]>) {
     let n = w * h;
     assert!(
         y.len() == n && t.len() == n,
@@ -343,7 +376,11 @@ pub(super) fn visual_loss(
     let count = (3 * n) as f64;
     let per_channel: Vec<(f64, Vec<f32>)> = (0..3)
         .map(|c| {
-            let x: Vec<f32> = y.iter().map(|p| p[c].clamp(0.0, 1.0)).collect();
+            let x: Vec<f32> = if clamp {
+                y.iter().map(|p| p[c].clamp(0.0, 1.0)).collect()
+            } else {
+                y.iter().map(|p| p[c]).collect()
+            };
             let tc: Vec<f32> = t.iter().map(|p| p[c]).collect();
             let (l1, mut grad): (f64, Vec<f32>) = {
                 let rec = f64::from(weights.rec) / count;
@@ -367,7 +404,7 @@ pub(super) fn visual_loss(
             };
             for (i, g) in grad.iter_mut().enumerate() {
                 let v = y[i][c];
-                *g = if (0.0..=1.0).contains(&v) {
+                *g = if !clamp || (0.0..=1.0).contains(&v) {
                     *g + gs[i] + gh[i]
                 } else {
                     0.0
