@@ -14,6 +14,7 @@ pub mod cli;
 pub mod config;
 pub mod decoder;
 pub mod embed;
+pub mod fit;
 pub mod http;
 pub mod image_file;
 pub mod queue;

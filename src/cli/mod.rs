@@ -16,6 +16,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
 
 mod embed;
+mod fit;
 mod probe;
 mod serve;
 use std::path::{Path, PathBuf};
@@ -54,6 +55,9 @@ enum Command {
         #[command(flatten)]
         limits: LimitArgs,
     },
+    /// Fit a 3D-GS scene to posed images (NeRF-synthetic or LLFF folder) on the CPU: INRIA's
+    /// recipe with densification; resumable; progress on stderr, report JSON on stdout.
+    Fit(Box<fit::FitArgs>),
     /// Benchmarks that judge the watermark (docs/RESULTS.md).
     Bench {
         #[command(subcommand)]
@@ -464,6 +468,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Decoder {
             command: DecoderCommand::TrainOpt(args),
         } => probe::train_opt_cmd(&args),
+        Command::Fit(args) => fit::fit_cmd(&args),
         Command::Bench { command } => probe::bench_cmd(&command),
         Command::Decode(args) => decode_cmd(&args),
         Command::Embed(args) => embed::embed_cmd(&args),
