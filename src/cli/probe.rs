@@ -297,6 +297,125 @@ pub enum BenchCommand {
     /// against the targets (docs/RESULTS.md). JSON on stdout (and --out), markdown
     /// with --markdown.
     Quality(QualityArgs),
+    /// The paper's protocol: fit (or reuse) 3D-GS scenes of its datasets (lego, fern), embed
+    /// through their training cameras, evaluate on their test cameras; Tables 1, 2, 3, 5, 6
+    /// with the paper's published rows beside ours. JSON on stdout (and --out), markdown with
+    /// --markdown.
+    Paper(PaperArgs),
+}
+
+#[derive(Args, Debug)]
+pub struct PaperArgs {
+    /// The CI variant: lego at 128², a 300-step fit, 32 bits, 12 training and 4 test views, no
+    /// ablations.
+    #[arg(long)]
+    quick: bool,
+    /// Folder holding nerf_synthetic_lego/ and llff_fern/.
+    #[arg(long, default_value = "../shared/data/datasets")]
+    datasets: PathBuf,
+    /// Only these datasets (comma separated: lego, fern).
+    #[arg(long, value_delimiter = ',')]
+    only: Option<Vec<String>>,
+    /// Where fitted scenes are kept and reused (default: $SPLATMARK_CACHE, else
+    /// $XDG_CACHE_HOME/splatmark, else ~/.cache/splatmark; fits/ inside).
+    #[arg(long)]
+    cache: Option<PathBuf>,
+    /// Fitting steps (default 7000).
+    #[arg(long)]
+    fit_iterations: Option<usize>,
+    /// Longest image side for every dataset (default: lego 400, fern its images_8 size).
+    #[arg(long)]
+    max_side: Option<u32>,
+    /// Message lengths (comma separated; default 32,48,64).
+    #[arg(long, value_delimiter = ',')]
+    bits: Option<Vec<usize>>,
+    /// Seeds (comma separated; default 0): results as mean ± std over them.
+    #[arg(long, value_delimiter = ',')]
+    seeds: Option<Vec<u64>>,
+    /// Skip Tables 5 and 6 (the ablations of the paper's recipe).
+    #[arg(long)]
+    no_ablations: bool,
+    /// Embedding options of Tables 1–3 (JSON, as `embed --config`); default: the defaults a
+    /// user gets.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Folder with decoder-{bits}.bpk artifacts (default: the shipped weights).
+    #[arg(long)]
+    weights_dir: Option<PathBuf>,
+    /// Write the JSON report here too.
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Write the markdown tables here.
+    #[arg(long)]
+    markdown: Option<PathBuf>,
+}
+
+/// The folder fitted scenes are cached in.
+fn fit_cache(explicit: Option<&PathBuf>) -> Result<PathBuf> {
+    if let Some(p) = explicit {
+        return Ok(p.clone());
+    }
+    let env = |k: &str| {
+        std::env::var_os(k)
+            .filter(|v| !v.is_empty())
+            .map(PathBuf::from)
+    };
+    let base = env("SPLATMARK_CACHE")
+        .or_else(|| env("XDG_CACHE_HOME").map(|p| p.join("splatmark")))
+        .or_else(|| env("HOME").map(|p| p.join(".cache/splatmark")))
+        .context("no cache folder: pass --cache or set SPLATMARK_CACHE")?;
+    Ok(base.join("fits"))
+}
+
+fn paper_cmd(a: &PaperArgs) -> Result<()> {
+    use crate::verify::paper::{self, PaperOptions};
+    let cache = fit_cache(a.cache.as_ref())?;
+    let mut o = if a.quick {
+        PaperOptions::quick(a.datasets.clone(), cache)
+    } else {
+        PaperOptions::full(a.datasets.clone(), cache)
+    };
+    if let Some(d) = &a.only {
+        o.datasets = d.clone();
+    }
+    if let Some(n) = a.fit_iterations {
+        o.fit_iterations = n;
+    }
+    if a.max_side.is_some() {
+        o.max_side = a.max_side;
+    }
+    if let Some(b) = &a.bits {
+        o.bits = b.clone();
+    }
+    if let Some(s) = &a.seeds {
+        anyhow::ensure!(!s.is_empty(), "--seeds needs at least one seed");
+        o.seeds = s.clone();
+    }
+    o.ablations &= !a.no_ablations;
+    if let Some(p) = &a.config {
+        let bytes = std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?;
+        o.embed = serde_json::from_slice(&bytes)
+            .with_context(|| format!("{} is not valid embedding options", p.display()))?;
+    }
+    o.weights_dir = a.weights_dir.clone();
+    let device = DeviceChoice::Flex.device().autodiff();
+    let report = paper::run(&o, &device, &mut |line| eprintln!("{line}"))?;
+    let json = serde_json::to_string_pretty(&report)?;
+    if let Some(out) = &a.out {
+        std::fs::write(out, &json).with_context(|| format!("cannot write {}", out.display()))?;
+    }
+    let md = paper::markdown(&report);
+    if let Some(p) = &a.markdown {
+        std::fs::write(p, &md).with_context(|| format!("cannot write {}", p.display()))?;
+    }
+    eprintln!("{md}");
+    eprintln!(
+        "bench paper: {} runs in {:.0} s",
+        report.runs.len(),
+        report.wall_s
+    );
+    println!("{json}");
+    Ok(())
 }
 
 #[derive(Args, Debug)]
@@ -307,13 +426,20 @@ pub struct QualityArgs {
     /// Folder holding donut/, plant/ and udon/.
     #[arg(long, default_value = "../shared/data/scenes")]
     scenes: PathBuf,
-    /// Only these scenes (comma separated).
+    /// Only these scenes (comma separated: donut, plant, udon, lego, fern).
     #[arg(long, value_delimiter = ',')]
     only: Option<Vec<String>>,
+    /// Folder holding the posed image sets nerf_synthetic_lego/ and llff_fern/ (default: the
+    /// datasets/ folder beside --scenes).
+    #[arg(long)]
+    datasets: Option<PathBuf>,
+    /// Where the fitted lego and fern are kept and reused (as `bench paper --cache`).
+    #[arg(long)]
+    cache: Option<PathBuf>,
     /// Message lengths (comma separated).
     #[arg(long, value_delimiter = ',')]
     bits: Option<Vec<usize>>,
-    /// Render side in pixels.
+    /// Render side in pixels (orbit scenes and udon; lego and fern keep their fitted size).
     #[arg(long)]
     size: Option<u32>,
     /// Orbit views to embed through (default 24, the CLI's; every 8th held out); the unseen
@@ -338,7 +464,10 @@ pub struct QualityArgs {
 
 pub fn bench_cmd(c: &BenchCommand) -> Result<()> {
     use crate::verify::bench::{self, QualityOptions};
-    let BenchCommand::Quality(a) = c;
+    let a = match c {
+        BenchCommand::Quality(a) => a,
+        BenchCommand::Paper(a) => return paper_cmd(a),
+    };
     let mut o = if a.quick {
         QualityOptions::quick(a.scenes.clone())
     } else {
@@ -347,6 +476,10 @@ pub fn bench_cmd(c: &BenchCommand) -> Result<()> {
     if let Some(s) = &a.only {
         o.scenes = s.clone();
     }
+    if let Some(d) = &a.datasets {
+        o.datasets_dir = d.clone();
+    }
+    o.cache_dir = fit_cache(a.cache.as_ref()).ok();
     if let Some(b) = &a.bits {
         o.bits = b.clone();
     }

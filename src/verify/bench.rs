@@ -1,7 +1,10 @@
 //! The quality bench (`splatmark bench quality`): does the watermark that a user gets with the
 //! defaults reach views the finetuning never saw, at the paper's fidelity? (issue 12, the judge)
 //!
-//! For each scene of `../shared/data/scenes` and each message length:
+//! For each scene of `../shared/data/scenes` (donut, plant, udon) and of the posed image sets of
+//! `../shared/data/datasets` (lego, fern: fitted by [`crate::fit`] into a cache folder on first
+//! use, watermarked through the dataset's training cameras on its own background and judged on
+//! its test cameras), and each message length:
 //!
 //! 1. **Training views as the CLI makes them**: `splatmark embed`'s defaults — `train_views`
 //!    orbit views (elevations −20°, 10°, 35°) at `size`², every `holdout_every`-th held out by
@@ -68,8 +71,15 @@ pub fn shared_scenes() -> Vec<BenchScene> {
 #[derive(Clone, Debug, Serialize)]
 pub struct QualityOptions {
     pub scenes_dir: PathBuf,
-    /// Names from [`shared_scenes`].
+    /// Names from [`shared_scenes`] or [`crate::verify::paper::paper_datasets`].
     pub scenes: Vec<String>,
+    /// Folder of the posed image sets (lego, fern): fitted into `cache_dir` on first use, then
+    /// embedded through their training cameras and judged on their test cameras.
+    pub datasets_dir: PathBuf,
+    /// Where fitted datasets are kept (`None`: dataset scenes cannot run).
+    pub cache_dir: Option<PathBuf>,
+    /// Fitting steps of the dataset scenes.
+    pub fit_iterations: usize,
     pub bits: Vec<usize>,
     /// Render side (training and evaluation), pixels: by default the orbit side of the CLI and
     /// the service (`config::ViewDefaults`, 512).
@@ -96,11 +106,25 @@ pub struct QualityOptions {
 }
 
 impl QualityOptions {
-    /// The full bench: every shared scene, 32/48/64 bits, the CLI's defaults.
+    /// The full bench: every shared scene and dataset, 32/48/64 bits, the CLI's defaults.
     pub fn full(scenes_dir: PathBuf) -> Self {
+        let datasets_dir = scenes_dir
+            .parent()
+            .map_or_else(|| PathBuf::from("datasets"), |p| p.join("datasets"));
         Self {
+            scenes: shared_scenes()
+                .into_iter()
+                .map(|s| s.name)
+                .chain(
+                    crate::verify::paper::paper_datasets()
+                        .into_iter()
+                        .map(|d| d.name),
+                )
+                .collect(),
             scenes_dir,
-            scenes: shared_scenes().into_iter().map(|s| s.name).collect(),
+            datasets_dir,
+            cache_dir: None,
+            fit_iterations: crate::fit::FitConfig::default().iterations,
             bits: vec![32, 48, 64],
             size: crate::config::ViewDefaults::default().width,
             train_views: 24,
@@ -133,8 +157,10 @@ impl QualityOptions {
 /// Why the bench could not run.
 #[derive(Debug, thiserror::Error)]
 pub enum BenchError {
-    #[error("unknown bench scene {0:?} (known: donut, plant, udon)")]
+    #[error("unknown bench scene {0:?} (known: donut, plant, udon, lego, fern)")]
     UnknownScene(String),
+    #[error("unknown dataset {0:?} (known: lego, fern)")]
+    UnknownDataset(String),
     #[error("{path}: {message}")]
     Input { path: PathBuf, message: String },
     #[error(transparent)]
@@ -292,6 +318,34 @@ pub fn views(
     Ok((train, orbit_cameras(g, &unseen)?))
 }
 
+/// A dataset scene of the bench, fitted (or reused from the cache) as `bench paper` fits it.
+fn fitted_dataset(
+    name: &str,
+    opts: &QualityOptions,
+    log: &mut dyn FnMut(&str),
+) -> Result<crate::fit::cache::Fitted, BenchError> {
+    let d = crate::verify::paper::paper_datasets()
+        .into_iter()
+        .find(|d| d.name == name)
+        .ok_or_else(|| BenchError::UnknownScene(name.to_string()))?;
+    let dir = opts.datasets_dir.join(&d.dir);
+    let cache = opts.cache_dir.as_ref().ok_or_else(|| {
+        input_err(
+            &dir,
+            "a dataset scene needs a cache folder for its fitted scene",
+        )
+    })?;
+    let data = crate::fit::DataOptions {
+        max_side: d.max_side,
+        ..crate::fit::DataOptions::default()
+    };
+    let cfg = crate::fit::FitConfig {
+        iterations: opts.fit_iterations,
+        ..crate::fit::FitConfig::default()
+    };
+    crate::fit::cache::fitted(name, &dir, &data, &cfg, cache, log).map_err(|e| input_err(&dir, e))
+}
+
 /// The payload of one run: drawn from `seed`, the scene's name and the length, so a rerun of
 /// the bench writes the same messages and reports the same figures.
 pub fn bench_message(seed: u64, scene: &str, bits: usize) -> Vec<bool> {
@@ -312,13 +366,26 @@ pub fn run(
     let all = shared_scenes();
     let mut runs = Vec::new();
     for name in &opts.scenes {
-        let scene = all
-            .iter()
-            .find(|s| &s.name == name)
-            .ok_or_else(|| BenchError::UnknownScene(name.clone()))?;
-        let path = opts.scenes_dir.join(&scene.file);
-        let g = read_scene(&path, &Limits::default()).map_err(|e| input_err(&path, e))?;
-        let (train, unseen) = views(scene, &g, opts)?;
+        let mut embed_opts = opts.embed.clone();
+        let (g, train, unseen) = match all.iter().find(|s| &s.name == name) {
+            Some(scene) => {
+                let path = opts.scenes_dir.join(&scene.file);
+                let g = read_scene(&path, &Limits::default()).map_err(|e| input_err(&path, e))?;
+                let (train, unseen) = views(scene, &g, opts)?;
+                (g, train, unseen)
+            }
+            None => {
+                let f = fitted_dataset(name, opts, log)?;
+                embed_opts.finetune.background = f.dataset.background;
+                let cams =
+                    |v: &[crate::fit::View]| v.iter().map(|x| x.camera.clone()).collect::<Vec<_>>();
+                (f.scene, cams(&f.dataset.train), cams(&f.dataset.test))
+            }
+        };
+        let opts = &QualityOptions {
+            embed: embed_opts,
+            ..opts.clone()
+        };
         for &bits in &opts.bits {
             let model = match &opts.weights_dir {
                 Some(d) => WatermarkModel::load(&d.join(format!("decoder-{bits}.bpk")), device)?,

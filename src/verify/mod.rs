@@ -8,6 +8,7 @@ pub mod bench;
 pub mod dispute;
 pub mod eval;
 pub mod message;
+pub mod paper;
 pub mod stats;
 
 pub use stats::{
