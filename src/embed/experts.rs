@@ -158,24 +158,7 @@ fn basic(g: &Gaussians, i: usize) -> Basic {
     let n = (q.iter().map(|v| v * v).sum::<f32>()).sqrt().max(1e-12);
     let quat = q.map(|v| v / n);
     let color = g.sh_dc[i].map(|d| 0.5 + SH_C0 * d);
-    let [w, x, y, z] = quat.map(f64::from);
-    let r = [
-        [
-            1.0 - 2.0 * (y * y + z * z),
-            2.0 * (x * y - w * z),
-            2.0 * (x * z + w * y),
-        ],
-        [
-            2.0 * (x * y + w * z),
-            1.0 - 2.0 * (x * x + z * z),
-            2.0 * (y * z - w * x),
-        ],
-        [
-            2.0 * (x * z - w * y),
-            2.0 * (y * z + w * x),
-            1.0 - 2.0 * (x * x + y * y),
-        ],
-    ];
+    let r = crate::render::rotation_matrix(quat.map(f64::from));
     let s2 = ls.map(|v| (2.0 * v as f64).exp());
     let c = |a: usize, b: usize| (0..3).map(|k| r[a][k] * r[b][k] * s2[k]).sum::<f64>();
     Basic {

@@ -217,26 +217,9 @@ pub fn reset_opacity(g: &mut Gaussians, adam: &mut Adam, cap: f32) {
 }
 
 /// Rotation matrix (row-major) of a quaternion (w, x, y, z), normalised first.
-pub(crate) fn rotation_matrix(q: [f32; 4]) -> [[f32; 3]; 3] {
+fn rotation_matrix(q: [f32; 4]) -> [[f32; 3]; 3] {
     let n = q.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-12);
-    let [w, x, y, z] = q.map(|v| v / n);
-    [
-        [
-            1.0 - 2.0 * (y * y + z * z),
-            2.0 * (x * y - w * z),
-            2.0 * (x * z + w * y),
-        ],
-        [
-            2.0 * (x * y + w * z),
-            1.0 - 2.0 * (x * x + z * z),
-            2.0 * (y * z - w * x),
-        ],
-        [
-            2.0 * (x * z - w * y),
-            2.0 * (y * z + w * x),
-            1.0 - 2.0 * (x * x + y * y),
-        ],
-    ]
+    crate::render::rotation_matrix(q.map(|v| v / n))
 }
 
 #[cfg(test)]

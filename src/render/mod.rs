@@ -26,6 +26,12 @@ pub use replay::Replay;
 use crate::scene::Camera;
 use std::sync::Arc;
 
+/// Row-major rotation matrix of a quaternion (w, x, y, z), the renderer's own (unit
+/// quaternions; normalise first).
+pub fn rotation_matrix<T: Real>(q: [T; 4]) -> [[T; 3]; 3] {
+    project::quat_to_mat(q)
+}
+
 /// Tile edge in pixels.
 pub const TILE: usize = 16;
 /// Smallest α that is composited.
