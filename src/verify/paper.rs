@@ -273,7 +273,17 @@ pub fn run(
                 f.scene.len()
             ));
             let t0 = Instant::now();
-            let out = embed(&f.scene, &train, &payload, &model, &eo, |_| {
+            let mut last = 0;
+            let out = embed(&f.scene, &train, &payload, &model, &eo, |p| {
+                if p.total > 0 && p.step >= last + (p.total / 10).max(1) {
+                    last = p.step;
+                    if let Some(s) = p.log {
+                        log(&format!(
+                            "  step {}/{}: train bits {:.3}, {:.1} dB",
+                            p.step, p.total, s.bit_acc_clean, s.psnr
+                        ));
+                    }
+                }
                 ControlFlow::Continue(())
             })?;
             let embed_s = t0.elapsed().as_secs_f64();
