@@ -318,6 +318,34 @@ pub fn views(
     Ok((train, orbit_cameras(g, &unseen)?))
 }
 
+/// The decoder of `bits` bits: from `weights_dir` (`decoder-{bits}.bpk`) or the shipped one.
+pub(crate) fn bench_model(
+    weights_dir: Option<&Path>,
+    bits: usize,
+    device: &burn::tensor::Device,
+) -> Result<WatermarkModel, BenchError> {
+    Ok(match weights_dir {
+        Some(d) => WatermarkModel::load(&d.join(format!("decoder-{bits}.bpk")), device)?,
+        None => WatermarkModel::shipped(bits, device)?,
+    })
+}
+
+/// `model` as a dispute decodes the asset: through the matched head and relative to the asset
+/// reference when the embedding measured them.
+pub(crate) fn as_disputed(
+    model: WatermarkModel,
+    report: &crate::embed::pipeline::EmbedReport,
+) -> WatermarkModel {
+    let model = match &report.view_projection {
+        Some(p) => model.with_projection(p.clone()),
+        None => model,
+    };
+    match &report.reference_logits {
+        Some(r) => model.with_reference(r.clone()),
+        None => model,
+    }
+}
+
 /// A dataset scene of the bench, fitted (or reused from the cache) as `bench paper` fits it.
 fn fitted_dataset(
     name: &str,
@@ -387,10 +415,7 @@ pub fn run(
             ..opts.clone()
         };
         for &bits in &opts.bits {
-            let model = match &opts.weights_dir {
-                Some(d) => WatermarkModel::load(&d.join(format!("decoder-{bits}.bpk")), device)?,
-                None => WatermarkModel::shipped(bits, device)?,
-            };
+            let model = bench_model(opts.weights_dir.as_deref(), bits, device)?;
             let payload = bench_message(opts.seed, name, bits);
             log(&format!(
                 "{name}, {bits} bits: embedding over {} training views ({} Gaussians, {}²)…",
@@ -424,14 +449,7 @@ pub fn run(
                 seed: opts.seed,
             };
             // Decoded as a dispute would: relative to the asset when the embedding measured it.
-            let model = match &out.report.view_projection {
-                Some(p) => model.with_projection(p.clone()),
-                None => model,
-            };
-            let model = match &out.report.reference_logits {
-                Some(r) => model.with_reference(r.clone()),
-                None => model,
-            };
+            let model = as_disputed(model, &out.report);
             let eval = evaluate_scene(&g, &out.scene, &unseen, &model, &payload, &settings)?;
             let targets = check(&eval, bits);
             let met = targets.iter().all(|t| t.met);

@@ -16,8 +16,7 @@ use std::time::Instant;
 
 use serde::Serialize;
 
-use super::bench::{BenchError, bench_message};
-use crate::decoder::WatermarkModel;
+use super::bench::{BenchError, as_disputed, bench_message, bench_model};
 use crate::embed::pipeline::{EmbedOptions, embed};
 use crate::embed::sbag::BudgetMode;
 use crate::fit::cache::{FitRecord, fitted};
@@ -262,10 +261,7 @@ pub fn run(
         for (variant, bits, seed, mut eo) in jobs {
             eo.finetune.background = ds.background;
             eo.finetune.seed = seed;
-            let model = match &opts.weights_dir {
-                Some(dd) => WatermarkModel::load(&dd.join(format!("decoder-{bits}.bpk")), device)?,
-                None => WatermarkModel::shipped(bits, device)?,
-            };
+            let model = bench_model(opts.weights_dir.as_deref(), bits, device)?;
             let payload = bench_message(seed, name, bits);
             log(&format!(
                 "{name}, {variant}, {bits} bits, seed {seed}: embedding over {} training views ({} Gaussians)…",
@@ -287,14 +283,7 @@ pub fn run(
                 ControlFlow::Continue(())
             })?;
             let embed_s = t0.elapsed().as_secs_f64();
-            let model = match &out.report.view_projection {
-                Some(p) => model.with_projection(p.clone()),
-                None => model,
-            };
-            let model = match &out.report.reference_logits {
-                Some(r) => model.with_reference(r.clone()),
-                None => model,
-            };
+            let model = as_disputed(model, &out.report);
             let settings = EvalSettings {
                 render: eo.render_options(),
                 fpr: opts.fpr,
