@@ -95,9 +95,14 @@ fn the_quick_paper_bench_fits_lego_and_evaluates_on_its_test_views() {
         assert!(tables.contains(needle), "{needle} missing from\n{tables}");
     }
 
-    // A second run reuses the fitted scene.
+    // A second run reuses the fitted scene and the finished embedding (an interrupted
+    // protocol resumes where it stopped): the same figures, nothing fitted or embedded again.
     let second = bench(&datasets, &cache, &out, &md);
     let stderr = String::from_utf8_lossy(&second.stderr);
     assert!(stderr.contains("lego: reusing the fit"), "{stderr}");
     assert!(!stderr.contains("fitting 300 steps"), "{stderr}");
+    assert!(stderr.contains("reusing the finished run"), "{stderr}");
+    assert!(!stderr.contains("embedding over"), "{stderr}");
+    let again: serde_json::Value = serde_json::from_slice(&std::fs::read(&out).unwrap()).unwrap();
+    assert_eq!(again["runs"], report["runs"]);
 }

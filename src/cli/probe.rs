@@ -342,6 +342,14 @@ pub struct PaperArgs {
     /// Folder with decoder-{bits}.bpk artifacts (default: the shipped weights).
     #[arg(long)]
     weights_dir: Option<PathBuf>,
+    /// Embed and evaluate at this fraction of each camera's resolution (default 1: the
+    /// protocol; the fit is reused at its own size). A cheaper run, stated in the output.
+    #[arg(long)]
+    view_scale: Option<f32>,
+    /// Run every embedding again, even those finished before with the same inputs (kept in
+    /// the cache's runs/ folder).
+    #[arg(long)]
+    fresh: bool,
     /// Write the JSON report here too.
     #[arg(long)]
     out: Option<PathBuf>,
@@ -398,6 +406,14 @@ fn paper_cmd(a: &PaperArgs) -> Result<()> {
             .with_context(|| format!("{} is not valid embedding options", p.display()))?;
     }
     o.weights_dir = a.weights_dir.clone();
+    if let Some(v) = a.view_scale {
+        anyhow::ensure!(
+            v.is_finite() && (0.05..=1.0).contains(&v),
+            "--view-scale must lie in [0.05, 1] (got {v})"
+        );
+        o.view_scale = v;
+    }
+    o.fresh = a.fresh;
     let device = DeviceChoice::Flex.device().autodiff();
     let report = paper::run(&o, &device, &mut |line| eprintln!("{line}"))?;
     let json = serde_json::to_string_pretty(&report)?;

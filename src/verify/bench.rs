@@ -622,7 +622,7 @@ mod tests {
     fn row(name: &str, acc: f64, detected: bool) -> Row {
         Row {
             name: name.into(),
-            kind: "image",
+            kind: "image".into(),
             bit_accuracy: acc,
             bit_accuracy_combined: acc,
             p_value: 0.5,

@@ -11,7 +11,7 @@
 
 use burn::tensor::Device;
 use image::RgbImage;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::attack::model::{ModelAttack, ModelAttackError};
 use crate::attack::{AttackError, RealAttack, paper_protocol};
@@ -41,11 +41,11 @@ pub enum EvalError {
 }
 
 /// One row: a condition and how the message survives it.
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Row {
     pub name: String,
     /// "image", "model" or "clean"/"unmarked".
-    pub kind: &'static str,
+    pub kind: String,
     /// Mean over views of the per-view bit accuracy.
     pub bit_accuracy: f64,
     /// Bit accuracy of the logits averaged over the views.
@@ -63,7 +63,7 @@ pub struct Row {
 }
 
 /// The evaluation of one watermarked scene.
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct SceneEval {
     pub views: usize,
     /// Mean PSNR (dB) of the watermarked scene's 8-bit renders against the original's.
@@ -77,7 +77,7 @@ pub struct SceneEval {
 }
 
 /// One evaluation view, clean.
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ViewEval {
     pub camera: String,
     /// Share of the view's pixels where the original's render differs from the background
@@ -190,7 +190,7 @@ fn row_of_logits(
     debug_assert_eq!(d.matches, matches_from_logits(&mean, message));
     Ok(Row {
         name: name.into(),
-        kind,
+        kind: kind.into(),
         bit_accuracy: per_view,
         bit_accuracy_combined: d.bit_accuracy,
         p_value: d.p_value,

@@ -1,325 +1,7 @@
-//! `splatmark bench paper`: the paper's protocol on scenes fitted to its datasets. Each dataset
-//! (Blender lego, LLFF fern) is fitted with [`crate::fit`] (or reused from the cache), then
-//! watermarked through the dataset's *training* cameras and evaluated on its *test* cameras —
-//! PSNR / SSIM against the original's renders, bit accuracy clean, under the seven image
-//! attacks and the three model attacks ([`evaluate_scene`]) — for each message length and seed
-//! (Tables 1–3), and, at 32 bits, with the paper's recipe and its ablations (Table 5: SBAG,
-//! group mask, decoupling; Table 6: carrier budget 1 % / adaptive / 10 %, with storage).
-//! The markdown puts the paper's published rows (copied from `../shared/paper/`) beside ours.
-//!
-//! LPIPS is not reported: no pretrained LPIPS network loads here without a download, and a
-//! substitute would not be LPIPS.
+//! The markdown of `bench paper`: our rows beside the paper's published rows (copied from
+//! `../shared/paper/`) for Tables 1, 2, 3, 5 and 6, each cell the mean ± std over seeds.
 
-use std::ops::ControlFlow;
-use std::path::PathBuf;
-use std::time::Instant;
-
-use serde::Serialize;
-
-use super::bench::{BenchError, as_disputed, bench_message, bench_model};
-use crate::embed::pipeline::{EmbedOptions, embed};
-use crate::embed::sbag::BudgetMode;
-use crate::fit::cache::{FitRecord, fitted};
-use crate::fit::{DataOptions, FitConfig};
-use crate::scene::{Gaussians, write_ply};
-use crate::verify::eval::{EvalSettings, SceneEval, evaluate_scene};
-
-/// A dataset of the protocol.
-#[derive(Clone, Debug, Serialize)]
-pub struct PaperDataset {
-    pub name: String,
-    /// Folder under the datasets folder.
-    pub dir: String,
-    /// Longest image side the scene is fitted and evaluated at (`None`: the images' own).
-    pub max_side: Option<u32>,
-}
-
-/// Blender lego at 400² (half its resolution) and LLFF fern at `images_8` (504×378).
-pub fn paper_datasets() -> Vec<PaperDataset> {
-    vec![
-        PaperDataset {
-            name: "lego".into(),
-            dir: "nerf_synthetic_lego".into(),
-            max_side: Some(400),
-        },
-        PaperDataset {
-            name: "fern".into(),
-            dir: "llff_fern".into(),
-            max_side: None,
-        },
-    ]
-}
-
-/// One variant of the embedding the protocol runs.
-#[derive(Clone, Debug, Serialize)]
-pub struct Variant {
-    pub name: String,
-    /// Table 5's switches (`None` outside the ablation).
-    pub sbag: bool,
-    pub group_mask: bool,
-    pub decoupled: bool,
-    /// Table 6's budget label.
-    pub budget: String,
-    #[serde(skip)]
-    pub options: EmbedOptions,
-}
-
-/// The ablation variants of Tables 5 and 6: the paper's recipe with each component off, all
-/// off, and the two fixed budgets.
-pub fn ablation_variants(seed: u64) -> Vec<Variant> {
-    let v = |name: &str, sbag: bool, mask: bool, decoupled: bool, budget: &str| {
-        let mut o = EmbedOptions::paper();
-        o.finetune.coupled = !decoupled;
-        o.no_group_mask = !mask;
-        o.plan.sbag.mode = match (sbag, budget) {
-            (false, _) => BudgetMode::Random { seed },
-            (true, "1%") => BudgetMode::Fraction(0.01),
-            (true, "10%") => BudgetMode::Fraction(0.10),
-            _ => BudgetMode::Adaptive,
-        };
-        Variant {
-            name: name.into(),
-            sbag,
-            group_mask: mask,
-            decoupled,
-            budget: budget.into(),
-            options: o,
-        }
-    };
-    vec![
-        v("paper_none", false, false, false, "adaptive"),
-        v("paper_no_decoupling", true, true, false, "adaptive"),
-        v("paper_no_mask", true, false, true, "adaptive"),
-        v("paper_no_sbag", false, true, true, "adaptive"),
-        v("paper", true, true, true, "adaptive"),
-        v("paper_budget_1%", true, true, true, "1%"),
-        v("paper_budget_10%", true, true, true, "10%"),
-    ]
-}
-
-/// What the protocol runs.
-#[derive(Clone, Debug, Serialize)]
-pub struct PaperOptions {
-    pub datasets_dir: PathBuf,
-    pub datasets: Vec<String>,
-    /// Where fitted scenes are kept between runs.
-    pub cache_dir: PathBuf,
-    /// Fitting steps.
-    pub fit_iterations: usize,
-    /// Overrides each dataset's longest side.
-    pub max_side: Option<u32>,
-    pub bits: Vec<usize>,
-    pub seeds: Vec<u64>,
-    /// Run Tables 5–6 (32 bits, the first seed).
-    pub ablations: bool,
-    /// The embedding of Tables 1–3 (default: the defaults a user gets).
-    pub embed: EmbedOptions,
-    pub fpr: f64,
-    pub weights_dir: Option<PathBuf>,
-    /// At most this many training / test views (the CI variant); `None`: all.
-    pub max_train_views: Option<usize>,
-    pub max_test_views: Option<usize>,
-}
-
-impl PaperOptions {
-    pub fn full(datasets_dir: PathBuf, cache_dir: PathBuf) -> Self {
-        Self {
-            datasets_dir,
-            datasets: paper_datasets().into_iter().map(|d| d.name).collect(),
-            cache_dir,
-            fit_iterations: FitConfig::default().iterations,
-            max_side: None,
-            bits: vec![32, 48, 64],
-            seeds: vec![0],
-            ablations: true,
-            embed: EmbedOptions::default(),
-            fpr: 1e-6,
-            weights_dir: None,
-            max_train_views: None,
-            max_test_views: None,
-        }
-    }
-
-    /// The CI variant: lego at 128², a 300-step fit, 32 bits, 12 training and 4 test views, no
-    /// ablations.
-    pub fn quick(datasets_dir: PathBuf, cache_dir: PathBuf) -> Self {
-        Self {
-            datasets: vec!["lego".into()],
-            fit_iterations: 300,
-            max_side: Some(128),
-            bits: vec![32],
-            ablations: false,
-            max_train_views: Some(12),
-            max_test_views: Some(4),
-            ..Self::full(datasets_dir, cache_dir)
-        }
-    }
-}
-
-/// One embedding and its evaluation on the test views.
-#[derive(Clone, Debug, Serialize)]
-pub struct PaperRun {
-    pub dataset: String,
-    pub variant: String,
-    pub bits: usize,
-    pub seed: u64,
-    pub train_views: usize,
-    pub test_views: usize,
-    pub gaussians: usize,
-    pub gaussians_marked: usize,
-    /// Size of the watermarked scene as an INRIA PLY.
-    pub storage_bytes: u64,
-    pub embed_s: f64,
-    pub eval: SceneEval,
-}
-
-#[derive(Clone, Debug, Serialize)]
-pub struct PaperReport {
-    pub options: PaperOptions,
-    pub fits: Vec<FitRecord>,
-    pub variants: Vec<Variant>,
-    pub runs: Vec<PaperRun>,
-    pub wall_s: f64,
-}
-
-fn ply_bytes(g: &Gaussians) -> u64 {
-    struct Count(u64);
-    impl std::io::Write for Count {
-        fn write(&mut self, b: &[u8]) -> std::io::Result<usize> {
-            self.0 += b.len() as u64;
-            Ok(b.len())
-        }
-        fn flush(&mut self) -> std::io::Result<()> {
-            Ok(())
-        }
-    }
-    let mut c = Count(0);
-    write_ply(g, &mut c).map_or(0, |_| c.0)
-}
-
-/// Runs the protocol; `log` gets a line per phase.
-pub fn run(
-    opts: &PaperOptions,
-    device: &burn::tensor::Device,
-    log: &mut dyn FnMut(&str),
-) -> Result<PaperReport, BenchError> {
-    let start = Instant::now();
-    let all = paper_datasets();
-    let mut fits = Vec::new();
-    let mut runs = Vec::new();
-    let first_seed = opts.seeds.first().copied().unwrap_or(0);
-    let variants = if opts.ablations {
-        ablation_variants(first_seed)
-    } else {
-        Vec::new()
-    };
-    for name in &opts.datasets {
-        let d = all
-            .iter()
-            .find(|d| &d.name == name)
-            .ok_or_else(|| BenchError::UnknownDataset(name.clone()))?;
-        let dir = opts.datasets_dir.join(&d.dir);
-        let data = DataOptions {
-            max_side: opts.max_side.or(d.max_side),
-            ..DataOptions::default()
-        };
-        let cfg = FitConfig {
-            iterations: opts.fit_iterations,
-            ..FitConfig::default()
-        };
-        let f = fitted(name, &dir, &data, &cfg, &opts.cache_dir, log).map_err(|e| {
-            BenchError::Input {
-                path: dir.clone(),
-                message: e.to_string(),
-            }
-        })?;
-        let ds = &f.dataset;
-        let take = |v: &[crate::fit::View], max: Option<usize>| {
-            let n = max.unwrap_or(usize::MAX).min(v.len()).max(1);
-            let step = v.len().div_ceil(n).max(1);
-            v.iter()
-                .step_by(step)
-                .map(|x| x.camera.clone())
-                .collect::<Vec<_>>()
-        };
-        let train = take(&ds.train, opts.max_train_views);
-        let test_views = if ds.test.is_empty() {
-            &ds.train
-        } else {
-            &ds.test
-        };
-        let test = take(test_views, opts.max_test_views);
-        let mut jobs: Vec<(String, usize, u64, EmbedOptions)> = Vec::new();
-        for &seed in &opts.seeds {
-            for &bits in &opts.bits {
-                jobs.push(("default".into(), bits, seed, opts.embed.clone()));
-            }
-        }
-        for v in &variants {
-            jobs.push((v.name.clone(), 32, first_seed, v.options.clone()));
-        }
-        for (variant, bits, seed, mut eo) in jobs {
-            eo.finetune.background = ds.background;
-            eo.finetune.seed = seed;
-            let model = bench_model(opts.weights_dir.as_deref(), bits, device)?;
-            let payload = bench_message(seed, name, bits);
-            log(&format!(
-                "{name}, {variant}, {bits} bits, seed {seed}: embedding over {} training views ({} Gaussians)…",
-                train.len(),
-                f.scene.len()
-            ));
-            let t0 = Instant::now();
-            let mut last = 0;
-            let out = embed(&f.scene, &train, &payload, &model, &eo, |p| {
-                if p.total > 0 && p.step >= last + (p.total / 10).max(1) {
-                    last = p.step;
-                    if let Some(s) = p.log {
-                        log(&format!(
-                            "  step {}/{}: train bits {:.3}, {:.1} dB",
-                            p.step, p.total, s.bit_acc_clean, s.psnr
-                        ));
-                    }
-                }
-                ControlFlow::Continue(())
-            })?;
-            let embed_s = t0.elapsed().as_secs_f64();
-            let model = as_disputed(model, &out.report);
-            let settings = EvalSettings {
-                render: eo.render_options(),
-                fpr: opts.fpr,
-                seed,
-            };
-            let eval = evaluate_scene(&f.scene, &out.scene, &test, &model, &payload, &settings)?;
-            let clean = eval.rows.iter().find(|r| r.name == "clean");
-            log(&format!(
-                "  {embed_s:.0} s; test views: {:.2} dB, clean {:.1} %",
-                eval.psnr,
-                clean.map_or(f64::NAN, |r| 100.0 * r.bit_accuracy)
-            ));
-            runs.push(PaperRun {
-                dataset: name.clone(),
-                variant,
-                bits,
-                seed,
-                train_views: train.len(),
-                test_views: test.len(),
-                gaussians: f.scene.len(),
-                gaussians_marked: out.scene.len(),
-                storage_bytes: ply_bytes(&out.scene),
-                embed_s,
-                eval,
-            });
-        }
-        fits.push(f.record);
-    }
-    Ok(PaperReport {
-        options: opts.clone(),
-        fits,
-        variants,
-        runs,
-        wall_s: start.elapsed().as_secs_f64(),
-    })
-}
+use super::{PaperReport, PaperRun};
 
 /// Mean and standard deviation (population; 0 for one value) of `xs`, `None` when empty.
 fn mean_std(xs: &[f64]) -> Option<(f64, f64)> {
@@ -485,6 +167,33 @@ pub fn markdown(report: &PaperReport) -> String {
             if f.cached { " (cached)" } else { "" }
         );
     }
+    if report.options.view_scale != 1.0 {
+        s += &format!(
+            "\nEmbedded and evaluated at ×{} of the fits' resolution (a cheaper run than the \
+             protocol's).\n",
+            report.options.view_scale
+        );
+    }
+    s += "\n**Runs** (seconds on this machine; a reused run keeps the time it took)\n\n\
+          | dataset | variant | bits | seed | views train / test | size | embed s | eval s | \
+          test PSNR | clean bit acc |\n|---|---|---|---|---|---|---|---|---|---|\n";
+    for r in runs {
+        s += &format!(
+            "| {} | {} | {} | {} | {} / {} | {}×{} | {:.0} | {:.0} | {:.2} | {} |\n",
+            r.dataset,
+            r.variant,
+            r.bits,
+            r.seed,
+            r.train_views,
+            r.test_views,
+            r.width,
+            r.height,
+            r.embed_s,
+            r.eval_s,
+            r.eval.psnr,
+            cell(std::slice::from_ref(r), |_| true, "clean", 2)
+        );
+    }
 
     // Table 1.
     s += "\n**Table 1: bit accuracy and rendering quality (test views)**\n\n| method |";
@@ -609,11 +318,12 @@ pub fn markdown(report: &PaperReport) -> String {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
+    use super::super::*;
     use super::*;
-    use crate::verify::eval::Row;
+    use crate::verify::eval::{Row, SceneEval};
 
-    fn run(
+    pub(crate) fn run(
         dataset: &str,
         variant: &str,
         bits: usize,
@@ -623,7 +333,7 @@ mod tests {
     ) -> PaperRun {
         let r = |name: &str, acc: f64| Row {
             name: name.into(),
-            kind: "image",
+            kind: "image".into(),
             bit_accuracy: acc,
             bit_accuracy_combined: acc,
             p_value: 0.5,
@@ -641,7 +351,10 @@ mod tests {
             gaussians: 100,
             gaussians_marked: 110,
             storage_bytes: 2_500_000,
+            width: 40,
+            height: 30,
             embed_s: 1.0,
+            eval_s: 1.0,
             eval: SceneEval {
                 views: 5,
                 psnr,
@@ -657,7 +370,7 @@ mod tests {
         }
     }
 
-    fn report(runs: Vec<PaperRun>, seeds: Vec<u64>, ablations: bool) -> PaperReport {
+    pub(crate) fn report(runs: Vec<PaperRun>, seeds: Vec<u64>, ablations: bool) -> PaperReport {
         let mut options = PaperOptions::full("d".into(), "c".into());
         options.seeds = seeds;
         PaperReport {
@@ -729,27 +442,5 @@ mod tests {
             md.contains("| 1% | 97.19 | 70.00 | 34.98 | 31.00 | 0.980 | 0.990 | 164 MB | 2.5 MB |"),
             "{md}"
         );
-    }
-
-    #[test]
-    fn each_ablation_switch_changes_only_what_it_names() {
-        let vs = ablation_variants(3);
-        let get = |n: &str| vs.iter().find(|v| v.name == n).unwrap();
-        let full = &get("paper").options;
-        assert!(!full.finetune.coupled && !full.no_group_mask);
-        assert_eq!(full.plan.sbag.mode, BudgetMode::Adaptive);
-        assert!(get("paper_no_decoupling").options.finetune.coupled);
-        assert!(get("paper_no_mask").options.no_group_mask);
-        assert_eq!(
-            get("paper_no_sbag").options.plan.sbag.mode,
-            BudgetMode::Random { seed: 3 }
-        );
-        assert_eq!(
-            get("paper_budget_10%").options.plan.sbag.mode,
-            BudgetMode::Fraction(0.10)
-        );
-        let none = &get("paper_none").options;
-        assert!(none.finetune.coupled && none.no_group_mask);
-        assert_eq!(none.plan.sbag.mode, BudgetMode::Random { seed: 3 });
     }
 }
