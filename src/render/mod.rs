@@ -15,6 +15,7 @@
 
 mod backward;
 mod forward;
+pub mod gpu;
 mod project;
 mod replay;
 pub mod sh;

@@ -1,0 +1,159 @@
+// Binning and compositing, the CPU reference's `render::forward` on the GPU:
+// - `emit`: each drawn Gaussian writes a (tile, depth) key and its index for every tile of its
+//   rectangle, at its offset from the scan of the per-Gaussian tile counts (in scene order, so
+//   the stable sort keeps equal depths in scene order, as the reference does);
+// - `ranges`: after the sort, each tile's [start, end) in the sorted list;
+// - `raster`: one 16×16 workgroup per tile composites its Gaussians front to back:
+//   α = min(0.99, o·e^(−σ)), skipped outside the α ≥ 1/255 footprint and below 1/255, stop
+//   before T would fall below 1e-4, then the background behind what is left of T.
+
+struct Camera {
+    w0: vec4<f32>,
+    w1: vec4<f32>,
+    w2: vec4<f32>,
+    t: vec4<f32>,
+    center: vec4<f32>,
+    fx: f32,
+    fy: f32,
+    cx: f32,
+    cy: f32,
+    lim_x: f32,
+    lim_y: f32,
+    near: f32,
+    alpha_min: f32,
+    bg: vec4<f32>,
+    width: u32,
+    height: u32,
+    tiles_x: u32,
+    tiles_y: u32,
+    n: u32,
+    sh_degree: u32,
+    stride: u32,
+    override_colors: u32,
+}
+
+struct Splat {
+    xy: vec2<f32>,
+    depth: f32,
+    opacity: f32,
+    conic: vec4<f32>,
+    color: vec4<f32>,
+}
+
+@group(0) @binding(0) var<uniform> cam: Camera;
+@group(0) @binding(1) var<storage, read> splats: array<Splat>;
+@group(0) @binding(2) var<storage, read> tiles: array<vec4<u32>>;
+@group(0) @binding(3) var<storage, read> offsets: array<u32>;
+@group(0) @binding(4) var<storage, read_write> keys_hi: array<u32>;
+@group(0) @binding(5) var<storage, read_write> keys_lo: array<u32>;
+@group(0) @binding(6) var<storage, read_write> vals: array<u32>;
+// [start, end) per tile.
+@group(0) @binding(7) var<storage, read_write> ranges: array<vec2<u32>>;
+
+@compute @workgroup_size(256)
+fn emit(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let i = gid.x + gid.y * nwg.x * 256u;
+    if (i >= cam.n) {
+        return;
+    }
+    let r = tiles[i];
+    var o = offsets[i];
+    let depth = bitcast<u32>(splats[i].depth);
+    for (var ty = r.y; ty < r.w; ty = ty + 1u) {
+        for (var tx = r.x; tx < r.z; tx = tx + 1u) {
+            keys_hi[o] = ty * cam.tiles_x + tx;
+            keys_lo[o] = depth;
+            vals[o] = i;
+            o = o + 1u;
+        }
+    }
+}
+
+// `offsets[cam.n]` is the number of (tile, Gaussian) pairs.
+@compute @workgroup_size(256)
+fn tile_ranges(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let k = gid.x + gid.y * nwg.x * 256u;
+    let total = offsets[cam.n];
+    if (k >= total) {
+        return;
+    }
+    let t = keys_hi[k];
+    if (k == 0u || keys_hi[k - 1u] != t) {
+        ranges[t].x = k;
+    }
+    if (k + 1u == total || keys_hi[k + 1u] != t) {
+        ranges[t].y = k + 1u;
+    }
+}
+
+@group(1) @binding(0) var<storage, read_write> image: array<f32>;
+@group(1) @binding(1) var<storage, read_write> final_t: array<f32>;
+
+var<workgroup> s_xy: array<vec2<f32>, 256>;
+var<workgroup> s_conic: array<vec4<f32>, 256>;
+var<workgroup> s_color: array<vec4<f32>, 256>;
+var<workgroup> s_opacity: array<f32, 256>;
+
+@compute @workgroup_size(16, 16)
+fn raster(
+    @builtin(workgroup_id) wid: vec3<u32>,
+    @builtin(local_invocation_id) lid3: vec3<u32>,
+    @builtin(local_invocation_index) lid: u32,
+) {
+    let tile = wid.y * cam.tiles_x + wid.x;
+    let px = wid.x * 16u + lid3.x;
+    let py = wid.y * 16u + lid3.y;
+    let inside = px < cam.width && py < cam.height;
+    let range = ranges[tile];
+    var trans = 1.0;
+    var color = vec3<f32>(0.0);
+    var done = !inside;
+    let fx = f32(px) + 0.5;
+    let fy = f32(py) + 0.5;
+    let n = range.y - range.x;
+    let batches = (n + 255u) / 256u;
+    for (var b = 0u; b < batches; b = b + 1u) {
+        workgroupBarrier();
+        let k = range.x + b * 256u + lid;
+        if (k < range.y) {
+            let s = splats[vals[k]];
+            s_xy[lid] = s.xy;
+            s_conic[lid] = s.conic;
+            s_color[lid] = s.color;
+            s_opacity[lid] = s.opacity;
+        }
+        workgroupBarrier();
+        let count = min(256u, n - b * 256u);
+        for (var j = 0u; j < count; j = j + 1u) {
+            if (done) {
+                break;
+            }
+            let con = s_conic[j];
+            let dx = fx - s_xy[j].x;
+            let dy = fy - s_xy[j].y;
+            let sigma = dx * (0.5 * con.x * dx + con.y * dy) + 0.5 * con.z * dy * dy;
+            if (sigma > con.w) {
+                continue;
+            }
+            let alpha = min(0.99, s_opacity[j] * exp(-sigma));
+            if (alpha < cam.alpha_min) {
+                continue;
+            }
+            let test_t = trans * (1.0 - alpha);
+            if (test_t < 1e-4) {
+                done = true;
+                break;
+            }
+            color = color + s_color[j].xyz * (alpha * trans);
+            trans = test_t;
+        }
+    }
+    if (inside) {
+        let p = py * cam.width + px;
+        let c = color + trans * cam.bg.xyz;
+        image[p * 3u] = c.x;
+        image[p * 3u + 1u] = c.y;
+        image[p * 3u + 2u] = c.z;
+        final_t[p] = trans;
+    }
+}

@@ -1,0 +1,292 @@
+//! Parity of the GPU path with the CPU reference, on whatever adapter wgpu finds (Mesa's
+//! lavapipe on the CI machines, installed by `scripts/setup.sh`): the integer kernels (scan,
+//! sort) exactly, renders to ≤ 1/255 on ≥ 99.9 % of the pixels.
+
+use super::*;
+use crate::render::render;
+use glam::{Mat3, Vec3};
+
+fn gpu() -> Arc<GpuRenderer> {
+    shared(AdapterChoice::AllowSoftware).unwrap_or_else(|e| {
+        panic!("no wgpu adapter ({e}); `bash scripts/setup.sh` installs Mesa's lavapipe")
+    })
+}
+
+struct Lcg(u64);
+
+impl Lcg {
+    fn next(&mut self) -> u32 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (self.0 >> 32) as u32
+    }
+    fn range(&mut self, a: f32, b: f32) -> f32 {
+        a + (b - a) * (self.next() as f32 / u32::MAX as f32)
+    }
+}
+
+fn upload(r: &GpuRenderer, v: &[u32]) -> wgpu::Buffer {
+    let b = r.storage("test", v.len() as u64 * 4).unwrap();
+    r.queue.write_buffer(&b, 0, words(v));
+    b
+}
+
+fn download(
+    r: &GpuRenderer,
+    encoder: wgpu::CommandEncoder,
+    b: &wgpu::Buffer,
+    n: usize,
+) -> Vec<u32> {
+    let bytes = r.read(encoder, b, n as u64 * 4).unwrap();
+    bytemuck::cast_slice(&bytes).to_vec()
+}
+
+#[test]
+fn scan_is_an_exact_exclusive_prefix_sum_over_several_levels() {
+    let r = gpu();
+    let mut rng = Lcg(7);
+    // 100 000 values: 391 blocks, whose sums need a second and a third level.
+    let v: Vec<u32> = (0..100_000).map(|_| rng.next() % 50).collect();
+    let buf = upload(&r, &v);
+    let mut encoder = r.device.create_command_encoder(&Default::default());
+    let mut keep = Vec::new();
+    r.scan(&mut encoder, &buf, v.len() as u32, &mut keep)
+        .unwrap();
+    let got = download(&r, encoder, &buf, v.len());
+    let mut acc = 0u32;
+    for (i, (&x, &g)) in v.iter().zip(&got).enumerate() {
+        assert_eq!(g, acc, "element {i}");
+        acc += x;
+    }
+}
+
+#[test]
+fn sort_orders_pairs_as_a_stable_sort_by_tile_then_depth() {
+    let r = gpu();
+    let mut rng = Lcg(11);
+    let n = 70_000usize;
+    // Few distinct depths, so that ties are common and stability shows.
+    let hi: Vec<u32> = (0..n).map(|_| rng.next() % 1000).collect();
+    let lo: Vec<u32> = (0..n).map(|_| (rng.range(3.0, 3.01)).to_bits()).collect();
+    let val: Vec<u32> = (0..n as u32).collect();
+    let pairs = sort::Pairs {
+        hi: upload(&r, &hi),
+        lo: upload(&r, &lo),
+        val: upload(&r, &val),
+    };
+    let mut encoder = r.device.create_command_encoder(&Default::default());
+    let mut keep = Vec::new();
+    let sorted = r
+        .pipes
+        .sort
+        .sort(&r, &mut encoder, pairs, n as u32, 10, &mut keep)
+        .unwrap();
+    r.queue.submit([encoder.finish()]);
+    let read = |b: &wgpu::Buffer| {
+        let e = r.device.create_command_encoder(&Default::default());
+        download(&r, e, b, n)
+    };
+    let (ghi, glo, gval) = (read(&sorted.hi), read(&sorted.lo), read(&sorted.val));
+    let mut want: Vec<u32> = val.clone();
+    want.sort_by_key(|&i| (hi[i as usize], lo[i as usize]));
+    assert_eq!(gval, want);
+    for k in 0..n {
+        let i = want[k] as usize;
+        assert_eq!((ghi[k], glo[k]), (hi[i], lo[i]));
+    }
+}
+
+fn camera(w: u32, h: u32, f: f32) -> Camera {
+    Camera::from_pose(
+        "front",
+        w,
+        h,
+        f,
+        f,
+        w as f32 / 2.0,
+        h as f32 / 2.0,
+        Mat3::IDENTITY,
+        Vec3::ZERO,
+    )
+}
+
+/// `n` random anisotropic Gaussians in front of a camera at the origin, in the box
+/// `[−s, s]² × [2, 6]`.
+fn scene(seed: u64, n: usize, sh_degree: u8, s: f32, log_scale: (f32, f32)) -> Gaussians {
+    let mut rng = Lcg(seed);
+    let mut g = Gaussians::with_capacity(n, sh_degree);
+    for _ in 0..n {
+        g.means
+            .push([rng.range(-s, s), rng.range(-s, s), rng.range(2.0, 6.0)]);
+        g.log_scales.push([
+            rng.range(log_scale.0, log_scale.1),
+            rng.range(log_scale.0, log_scale.1),
+            rng.range(log_scale.0, log_scale.1),
+        ]);
+        g.rotations.push([
+            rng.range(0.3, 1.0),
+            rng.range(-1.0, 1.0),
+            rng.range(-1.0, 1.0),
+            rng.range(-1.0, 1.0),
+        ]);
+        g.opacity_logits.push(rng.range(-3.0, 4.0));
+        g.sh_dc.push([
+            rng.range(-1.5, 1.5),
+            rng.range(-1.5, 1.5),
+            rng.range(-1.5, 1.5),
+        ]);
+        for _ in 0..g.rest_len() {
+            g.sh_rest.push(rng.range(-0.4, 0.4));
+        }
+    }
+    g
+}
+
+/// Renders on both paths; asserts ≤ 1/255 on ≥ 99.9 % of the values of the image and of the
+/// final transmittance; returns the largest difference.
+fn assert_parity(g: &Gaussians, cam: &Camera, opts: &RenderOptions) -> f32 {
+    let cpu = render(g, cam, opts).unwrap();
+    let gpu = gpu().render(g, cam, opts).unwrap();
+    assert_eq!((gpu.width, gpu.height), (cpu.width, cpu.height));
+    let tol = 1.0 / 255.0;
+    let mut worst = 0f32;
+    let mut over = 0usize;
+    for (a, b) in cpu.image.iter().zip(&gpu.image) {
+        for c in 0..3 {
+            let d = (a[c] - b[c]).abs();
+            worst = worst.max(d);
+            over += usize::from(!(d <= tol));
+        }
+    }
+    // The reference keeps T tile-major.
+    let tiles_x = (cam.width as usize).div_ceil(TILE);
+    for (p, &t) in gpu.final_t.iter().enumerate() {
+        let (x, y) = (p % cam.width as usize, p / cam.width as usize);
+        let k = ((y / TILE) * tiles_x + x / TILE) * TILE * TILE + (y % TILE) * TILE + x % TILE;
+        let d = (cpu.state.final_t[k] - t).abs();
+        worst = worst.max(d);
+        over += usize::from(!(d <= tol));
+    }
+    let values = cpu.image.len() * 4;
+    assert!(
+        (over as f64) <= values as f64 * 1e-3,
+        "{over} of {values} values differ by more than 1/255 (largest {worst})"
+    );
+    worst
+}
+
+#[test]
+fn renders_match_the_cpu_reference_at_every_sh_degree() {
+    for deg in 0..=3u8 {
+        let g = scene(100 + u64::from(deg), 3000, deg, 1.5, (-4.0, -2.0));
+        // Not a multiple of 16: partial tiles on the right and bottom edges.
+        let cam = camera(120, 88, 100.0);
+        let worst = assert_parity(&g, &cam, &RenderOptions::default());
+        assert!(worst < 1e-3, "SH degree {deg}: largest difference {worst}");
+    }
+}
+
+#[test]
+fn background_colour_overrides_and_a_lower_sh_degree_match_the_reference() {
+    let g = scene(5, 2000, 3, 1.5, (-4.0, -2.0));
+    let cam = camera(96, 96, 90.0);
+    let colors: Arc<[[f32; 3]]> = (0..g.len())
+        .map(|i| [(i % 7) as f32 / 7.0, 0.5, 1.2 - (i % 3) as f32 * 0.4])
+        .collect();
+    for opts in [
+        RenderOptions {
+            background: [0.2, 0.5, 1.0],
+            ..Default::default()
+        },
+        RenderOptions {
+            colors: Some(colors),
+            background: [1.0; 3],
+            ..Default::default()
+        },
+        RenderOptions {
+            sh_degree: Some(1),
+            ..Default::default()
+        },
+    ] {
+        let worst = assert_parity(&g, &cam, &opts);
+        assert!(worst < 1e-3, "{opts:?}: largest difference {worst}");
+    }
+}
+
+#[test]
+fn edge_cases_match_the_reference() {
+    let cam = camera(80, 64, 70.0);
+    // Behind the camera and behind the near plane: culled on both paths.
+    let mut behind = scene(1, 300, 0, 1.0, (-3.0, -2.0));
+    for (k, m) in behind.means.iter_mut().enumerate() {
+        m[2] = if k % 2 == 0 { -m[2] } else { 0.005 };
+    }
+    // Huge footprints covering the whole screen, and sub-pixel ones.
+    let huge = scene(2, 20, 0, 0.5, (0.5, 1.5));
+    let tiny = scene(3, 2000, 0, 1.0, (-9.0, -7.0));
+    // One corner only: most tiles are empty.
+    let mut corner = scene(4, 400, 0, 0.2, (-4.0, -3.0));
+    for m in &mut corner.means {
+        m[0] -= 1.2;
+        m[1] -= 1.0;
+    }
+    // 3 000 Gaussians over a few tiles: far more than one 256-splat batch per tile, and pixels
+    // that saturate (T below 1e-4) long before the list ends.
+    let dense = scene(6, 3000, 0, 0.08, (-3.5, -2.5));
+    for (name, g) in [
+        ("behind", behind),
+        ("huge", huge),
+        ("tiny", tiny),
+        ("corner", corner),
+        ("dense", dense),
+    ] {
+        let worst = assert_parity(&g, &cam, &RenderOptions::default());
+        assert!(worst < 2e-3, "{name}: largest difference {worst}");
+    }
+    // An empty scene is the background.
+    let empty = Gaussians::with_capacity(0, 0);
+    let opts = RenderOptions {
+        background: [0.25, 0.5, 0.75],
+        ..Default::default()
+    };
+    let out = gpu().render(&empty, &cam, &opts).unwrap();
+    assert!(out.image.iter().all(|p| *p == [0.25, 0.5, 0.75]));
+    assert!(out.final_t.iter().all(|&t| t == 1.0));
+}
+
+#[test]
+fn bad_input_is_the_references_typed_error() {
+    let g = scene(1, 10, 0, 1.0, (-3.0, -2.0));
+    let mut cam = camera(32, 32, 30.0);
+    cam.fx = -1.0;
+    match gpu().render(&g, &cam, &RenderOptions::default()) {
+        Err(GpuError::Render(RenderError::BadCamera { .. })) => {}
+        other => panic!("expected a bad-camera error, got {other:?}"),
+    }
+}
+
+#[test]
+fn a_shared_scene_renders_as_on_the_cpu() {
+    let path = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../shared/data/scenes/donut/fused.ply");
+    if !path.is_file() {
+        eprintln!(
+            "SKIPPED: {} is missing (the shared data folder)",
+            path.display()
+        );
+        return;
+    }
+    let g = crate::scene::read_scene(&path, &crate::scene::Limits::default()).unwrap();
+    let orbit = crate::scene::orbit::OrbitOptions {
+        count: 3,
+        width: 128,
+        height: 128,
+        ..Default::default()
+    };
+    let cams = crate::scene::orbit::orbit_cameras(&g, &orbit).unwrap();
+    for cam in &cams {
+        assert_parity(&g, cam, &RenderOptions::default());
+    }
+}
