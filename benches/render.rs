@@ -5,6 +5,7 @@
 //! `-- 100k donut "ply io"` to run only the benchmarks whose names contain them). Prints a Markdown
 //! table; figures are recorded in docs/BENCHMARKS.md.
 
+use splatmark::render::gpu::{AdapterChoice, GpuRenderer, shared};
 use splatmark::render::{RenderOptions, backward, render};
 use splatmark::scene::orbit::{OrbitOptions, orbit_cameras};
 use splatmark::scene::{
@@ -38,7 +39,7 @@ fn camera_for(radius: f32, width: u32, height: u32) -> Camera {
     )
 }
 
-fn bench(name: &str, g: &Gaussians, cam: &Camera, reps: usize) {
+fn bench(name: &str, g: &Gaussians, cam: &Camera, reps: usize, gpu: Option<&GpuRenderer>) {
     if !selected(name) {
         return;
     }
@@ -58,8 +59,19 @@ fn bench(name: &str, g: &Gaussians, cam: &Camera, reps: usize) {
         both.push(t1.elapsed());
         std::hint::black_box((r, grads));
     }
+    // The GPU path: upload, every kernel, and the image read back (what a caller waits for).
+    let gpu_ms = gpu.map_or("–".to_string(), |r| {
+        let warm = r.render(g, cam, &opts).expect("gpu render");
+        let mut t = Vec::new();
+        for _ in 0..reps {
+            let t0 = Instant::now();
+            std::hint::black_box(r.render(g, cam, &opts).expect("gpu render"));
+            t.push(t0.elapsed());
+        }
+        format!("{:.1} ({} entries)", median(t), warm.tile_entries)
+    });
     println!(
-        "| {name} | {} | {}×{} | {} | {} | {:.1} | {:.1} |",
+        "| {name} | {} | {}×{} | {} | {} | {:.1} | {:.1} | {gpu_ms} |",
         g.len(),
         cam.width,
         cam.height,
@@ -82,10 +94,29 @@ fn selected(name: &str) -> bool {
 fn main() {
     let quick = std::env::args().any(|a| a == "--quick");
     let reps = if quick { 3 } else { 9 };
+    // `-- --no-gpu` leaves the wgpu column out.
+    let gpu = if std::env::args().any(|a| a == "--no-gpu") {
+        None
+    } else {
+        match shared(AdapterChoice::AllowSoftware) {
+            Ok(r) => Some(r),
+            Err(e) => {
+                eprintln!("no wgpu adapter ({e}): the wgpu column is left empty");
+                None
+            }
+        }
+    };
     println!(
-        "threads: {}, reps: {reps} (median)\n\n| scene | Gaussians | image | visible | tile entries | forward ms | forward+backward ms |\n|---|---|---|---|---|---|---|",
-        rayon::current_num_threads()
+        "threads: {}, reps: {reps} (median), wgpu adapter: {}\n\n| scene | Gaussians | image | visible | tile entries | forward ms | forward+backward ms | wgpu forward ms |\n|---|---|---|---|---|---|---|---|",
+        rayon::current_num_threads(),
+        gpu.as_ref().map_or("none".to_string(), |r| format!(
+            "{} ({:?}, {:?})",
+            r.adapter().name,
+            r.adapter().device_type,
+            r.adapter().backend
+        ))
     );
+    let gpu = gpu.as_deref();
     for n in [10_000, 100_000, 1_000_000] {
         let g = synthetic::object_scene(n, 3, 42);
         bench(
@@ -93,6 +124,7 @@ fn main() {
             &g,
             &camera_for(1.0, 800, 800),
             reps,
+            gpu,
         );
     }
     let data = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/scenes");
@@ -112,7 +144,7 @@ fn main() {
             ..OrbitOptions::default()
         };
         let cam = orbit_cameras(&g, &opts).expect("orbit").remove(0);
-        bench(name, &g, &cam, reps);
+        bench(name, &g, &cam, reps, gpu);
     }
 
     // Scene I/O: INRIA binary PLY of 1M SH3 Gaussians (236 MB), in memory.

@@ -133,6 +133,61 @@ fn donut_and_plant_render_through_orbit_views() {
 }
 
 #[test]
+fn the_gpu_path_renders_the_same_pngs_as_the_cpu_reference() {
+    let Some(d) = data() else { return };
+    // udon has SH degree 3: view-dependent colour on both paths.
+    let render = |device: &str, out: &Path| {
+        let res = bin()
+            .arg("render")
+            .arg(d.join("udon/point_cloud.ply"))
+            .arg("--cameras")
+            .arg(d.join("udon/cameras.json"))
+            .args(["--limit", "2", "--width", "236", "--device", device])
+            .arg("--out")
+            .arg(out)
+            .output()
+            .unwrap();
+        let msg = String::from_utf8_lossy(&res.stderr).to_string();
+        assert!(res.status.success(), "{device}: {msg}");
+        msg
+    };
+    let (cpu, gpu) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    assert!(render("cpu", cpu.path()).contains("rendering on cpu"));
+    // `bash scripts/setup.sh` installs Mesa's lavapipe, so wgpu finds an adapter here.
+    assert!(render("wgpu", gpu.path()).contains("rendering on wgpu"));
+    let mut names: Vec<_> = std::fs::read_dir(cpu.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
+    names.sort();
+    assert_eq!(names.len(), 2);
+    for name in names {
+        let a = image::open(cpu.path().join(&name)).unwrap().to_rgb8();
+        let b = image::open(gpu.path().join(&name)).unwrap().to_rgb8();
+        assert_eq!(a.dimensions(), b.dimensions());
+        let values = a.as_raw().len();
+        let off = a
+            .as_raw()
+            .iter()
+            .zip(b.as_raw())
+            .filter(|(x, y)| x.abs_diff(**y) > 1)
+            .count();
+        assert!(
+            off * 1000 <= values,
+            "{name:?}: {off} of {values} values differ by > 1"
+        );
+    }
+    let bad = bin()
+        .arg("render")
+        .arg(d.join("udon/point_cloud.ply"))
+        .args(["--device", "tpu", "--out", "/nonexistent"])
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("expected cpu, wgpu or auto"));
+}
+
+#[test]
 fn bad_input_fails_with_a_clear_message_and_writes_nothing() {
     let dir = tempfile::tempdir().unwrap();
     let bad = dir.path().join("truncated.ply");

@@ -6,7 +6,7 @@ use crate::decoder::eval::{self, EvalOptions};
 use crate::decoder::train::{
     self, DeviceChoice, EncoderKind, RunOptions, TrainConfig, WhiteningChoice,
 };
-use crate::render::{RenderOptions, render, to_rgb8};
+use crate::render::{RenderOptions, to_rgb8};
 use crate::scene::bounds::{full_bounds, robust_bounds};
 use crate::scene::camera::{read_cameras, resize_all};
 use crate::scene::format::read_scene_bytes_detect;
@@ -429,6 +429,10 @@ struct RenderArgs {
     /// Render only the first N cameras.
     #[arg(long)]
     limit: Option<usize>,
+    /// Rasterizer: cpu (the reference), wgpu (the GPU path on any wgpu adapter, Mesa's
+    /// lavapipe included) or auto (a hardware GPU if there is one, else the CPU).
+    #[arg(long, default_value = "auto")]
+    device: crate::render::gpu::DeviceRequest,
     /// Output folder (created if missing).
     #[arg(long)]
     out: PathBuf,
@@ -680,19 +684,20 @@ fn render_cmd(a: &RenderArgs) -> Result<()> {
         sh_degree: a.sh_degree,
         ..RenderOptions::default()
     };
+    let rasterizer = crate::render::gpu::Rasterizer::open(a.device)?;
+    eprintln!("rendering on {}", rasterizer.describe());
     for (k, cam) in cams.iter().enumerate() {
         let t = std::time::Instant::now();
-        let r = render(&g, cam, &opts).with_context(|| format!("rendering {}", cam.name))?;
+        let (w, h, image) = rasterizer
+            .render_image(&g, cam, &opts)
+            .with_context(|| format!("rendering {}", cam.name))?;
         let file = a.out.join(format!("{:03}_{}.png", k, safe_name(&cam.name)));
-        to_rgb8(r.width, r.height, &r.image)
+        to_rgb8(w, h, &image)
             .save(&file)
             .with_context(|| format!("cannot write {}", file.display()))?;
         eprintln!(
-            "{} ({}×{}, {} visible) in {:.0} ms",
+            "{} ({w}×{h}) in {:.0} ms",
             file.display(),
-            r.width,
-            r.height,
-            r.stats.visible,
             t.elapsed().as_secs_f64() * 1e3
         );
     }
