@@ -229,3 +229,302 @@ fn project(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroup
     tiles[i] = vec4<u32>(tx0, ty0, tx1, ty1);
     counts[i] = (tx1 - tx0) * (ty1 - ty0);
 }
+
+// ---- Backward: the screen-space gradients of `shaders/backward.wgsl`'s entry slots through the
+// projection, per Gaussian (the CPU reference's `project_backward`). ----
+
+// Floats per entry slot: xy (2), conic (3), opacity (1), colour (3), blend weight (1).
+const SLOT: u32 = 10u;
+
+
+@group(0) @binding(5) var<storage, read> slots: array<f32>;
+// ∂L/∂parameters, `cam.stride` floats per Gaussian laid out like `params` (minus the
+// override colour).
+@group(0) @binding(6) var<storage, read_write> grads: array<f32>;
+// Per Gaussian: ∂L/∂colour (3), Σ α·T (1), ∂L/∂(x, y) of the screen centre (2).
+@group(0) @binding(7) var<storage, read_write> aux: array<f32>;
+
+fn basis_len(deg: u32) -> u32 {
+    return (deg + 1u) * (deg + 1u);
+}
+
+// SH basis value k at unit direction d.
+fn basis(k: u32, d: vec3<f32>) -> f32 {
+    let x = d.x;
+    let y = d.y;
+    let z = d.z;
+    let xx = x * x;
+    let yy = y * y;
+    let zz = z * z;
+    switch k {
+        case 0u: { return C0; }
+        case 1u: { return -C1 * y; }
+        case 2u: { return C1 * z; }
+        case 3u: { return -C1 * x; }
+        case 4u: { return C2_0 * x * y; }
+        case 5u: { return C2_1 * y * z; }
+        case 6u: { return C2_2 * (2.0 * zz - xx - yy); }
+        case 7u: { return C2_3 * x * z; }
+        case 8u: { return C2_4 * (xx - yy); }
+        case 9u: { return C3_0 * y * (3.0 * xx - yy); }
+        case 10u: { return C3_1 * x * y * z; }
+        case 11u: { return C3_2 * y * (4.0 * zz - xx - yy); }
+        case 12u: { return C3_3 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy); }
+        case 13u: { return C3_4 * x * (4.0 * zz - xx - yy); }
+        case 14u: { return C3_5 * z * (xx - yy); }
+        default: { return C3_6 * x * (xx - 3.0 * yy); }
+    }
+}
+
+// ∂basis_k/∂(x, y, z), x, y, z independent.
+fn basis_grad(k: u32, d: vec3<f32>) -> vec3<f32> {
+    let x = d.x;
+    let y = d.y;
+    let z = d.z;
+    let xx = x * x;
+    let yy = y * y;
+    let zz = z * z;
+    switch k {
+        case 1u: { return vec3<f32>(0.0, -C1, 0.0); }
+        case 2u: { return vec3<f32>(0.0, 0.0, C1); }
+        case 3u: { return vec3<f32>(-C1, 0.0, 0.0); }
+        case 4u: { return vec3<f32>(C2_0 * y, C2_0 * x, 0.0); }
+        case 5u: { return vec3<f32>(0.0, C2_1 * z, C2_1 * y); }
+        case 6u: { return vec3<f32>(-2.0 * C2_2 * x, -2.0 * C2_2 * y, 4.0 * C2_2 * z); }
+        case 7u: { return vec3<f32>(C2_3 * z, 0.0, C2_3 * x); }
+        case 8u: { return vec3<f32>(2.0 * C2_4 * x, -2.0 * C2_4 * y, 0.0); }
+        case 9u: { return vec3<f32>(C3_0 * 6.0 * x * y, C3_0 * 3.0 * (xx - yy), 0.0); }
+        case 10u: { return vec3<f32>(C3_1 * y * z, C3_1 * x * z, C3_1 * x * y); }
+        case 11u: { return vec3<f32>(-2.0 * C3_2 * x * y, C3_2 * (4.0 * zz - xx - 3.0 * yy), C3_2 * 8.0 * y * z); }
+        case 12u: { return vec3<f32>(-6.0 * C3_3 * x * z, -6.0 * C3_3 * y * z, C3_3 * (6.0 * zz - 3.0 * xx - 3.0 * yy)); }
+        case 13u: { return vec3<f32>(C3_4 * (4.0 * zz - 3.0 * xx - yy), -2.0 * C3_4 * x * y, C3_4 * 8.0 * x * z); }
+        case 14u: { return vec3<f32>(2.0 * C3_5 * x * z, -2.0 * C3_5 * y * z, C3_5 * (xx - yy)); }
+        case 15u: { return vec3<f32>(C3_6 * 3.0 * (xx - yy), -C3_6 * 6.0 * x * y, 0.0); }
+        default: { return vec3<f32>(0.0); }
+    }
+}
+
+@compute @workgroup_size(256)
+fn project_backward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let i = gid.x + gid.y * nwg.x * 256u;
+    if (i >= cam.n) {
+        return;
+    }
+    let gs = cam.stride - select(0u, 3u, cam.override_colors != 0u);
+    let out = i * gs;
+    for (var k = 0u; k < gs; k = k + 1u) {
+        grads[out + k] = 0.0;
+    }
+    for (var k = 0u; k < 6u; k = k + 1u) {
+        aux[i * 6u + k] = 0.0;
+    }
+    let o0 = counts[i];
+    let o1 = counts[i + 1u];
+    if (o0 == o1) {
+        return;
+    }
+    // Sum of the entries' slots, in entry order.
+    var g_xy = vec2<f32>(0.0);
+    var g_conic = vec3<f32>(0.0);
+    var g_opacity = 0.0;
+    var g_color = vec3<f32>(0.0);
+    var g_w = 0.0;
+    for (var e = o0; e < o1; e = e + 1u) {
+        let s = e * SLOT;
+        g_xy += vec2<f32>(slots[s], slots[s + 1u]);
+        g_conic += vec3<f32>(slots[s + 2u], slots[s + 3u], slots[s + 4u]);
+        g_opacity += slots[s + 5u];
+        g_color += vec3<f32>(slots[s + 6u], slots[s + 7u], slots[s + 8u]);
+        g_w += slots[s + 9u];
+    }
+    aux[i * 6u] = g_color.x;
+    aux[i * 6u + 1u] = g_color.y;
+    aux[i * 6u + 2u] = g_color.z;
+    aux[i * 6u + 3u] = g_w;
+    aux[i * 6u + 4u] = g_xy.x;
+    aux[i * 6u + 5u] = g_xy.y;
+
+    let base = i * cam.stride;
+    let m = vec3<f32>(params[base], params[base + 1u], params[base + 2u]);
+    var w: array<vec3<f32>, 3>;
+    w[0] = cam.w0.xyz;
+    w[1] = cam.w1.xyz;
+    w[2] = cam.w2.xyz;
+    let tc = vec3<f32>(
+        w[0].x * m.x + w[0].y * m.y + w[0].z * m.z + cam.t.x,
+        w[1].x * m.x + w[1].y * m.y + w[1].z * m.z + cam.t.y,
+        w[2].x * m.x + w[2].y * m.y + w[2].z * m.z + cam.t.z,
+    );
+    let z = tc.z;
+    let inv_z = 1.0 / z;
+
+    // Colour → SH (an override colour depends on no parameter).
+    var dcol = g_color;
+    if (cam.override_colors != 0u) {
+        dcol = vec3<f32>(0.0);
+    }
+    let deg = cam.sh_degree;
+    var v = m - cam.center.xyz;
+    let len = max(sqrt(v.x * v.x + v.y * v.y + v.z * v.z), 1e-12);
+    let d = v / len;
+    if (cam.override_colors == 0u) {
+        var col = C0 * vec3<f32>(params[base + 11u], params[base + 12u], params[base + 13u]);
+        for (var k = 1u; k < basis_len(deg); k = k + 1u) {
+            col += basis(k, d) * rest(base, k);
+        }
+        col += vec3<f32>(0.5);
+        dcol = select(dcol, vec3<f32>(0.0), col < vec3<f32>(0.0));
+    }
+    grads[out + 11u] = C0 * dcol.x;
+    grads[out + 12u] = C0 * dcol.y;
+    grads[out + 13u] = C0 * dcol.z;
+    var d_mean = vec3<f32>(0.0);
+    if (deg > 0u) {
+        var d_dir = vec3<f32>(0.0);
+        for (var k = 1u; k < basis_len(deg); k = k + 1u) {
+            let b = basis(k, d);
+            let o = out + 14u + (k - 1u) * 3u;
+            grads[o] = b * dcol.x;
+            grads[o + 1u] = b * dcol.y;
+            grads[o + 2u] = b * dcol.z;
+            d_dir += dot(rest(base, k), dcol) * basis_grad(k, d);
+        }
+        let dd = dot(d, d_dir);
+        d_mean += (d_dir - d * dd) / len;
+    }
+
+    // Opacity through the sigmoid.
+    let op = 1.0 / (1.0 + exp(-params[base + 10u]));
+    grads[out + 10u] = g_opacity * op * (1.0 - op);
+
+    // The 3D covariance chain again.
+    var q = vec4<f32>(params[base + 6u], params[base + 7u], params[base + 8u], params[base + 9u]);
+    let qn = sqrt(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w);
+    q = q / qn;
+    let qw = q.x;
+    let qx = q.y;
+    let qy = q.z;
+    let qz = q.w;
+    var r: array<vec3<f32>, 3>;
+    r[0] = vec3<f32>(1.0 - 2.0 * (qy * qy + qz * qz), 2.0 * (qx * qy - qw * qz), 2.0 * (qx * qz + qw * qy));
+    r[1] = vec3<f32>(2.0 * (qx * qy + qw * qz), 1.0 - 2.0 * (qx * qx + qz * qz), 2.0 * (qy * qz - qw * qx));
+    r[2] = vec3<f32>(2.0 * (qx * qz - qw * qy), 2.0 * (qy * qz + qw * qx), 1.0 - 2.0 * (qx * qx + qy * qy));
+    let s = exp(vec3<f32>(params[base + 3u], params[base + 4u], params[base + 5u]));
+    var mm: array<vec3<f32>, 3>;
+    for (var a = 0u; a < 3u; a = a + 1u) {
+        mm[a] = r[a] * s;
+    }
+    var sig: array<vec3<f32>, 3>;
+    for (var a = 0u; a < 3u; a = a + 1u) {
+        sig[a] = vec3<f32>(dot(mm[a], mm[0]), dot(mm[a], mm[1]), dot(mm[a], mm[2]));
+    }
+
+    // Jacobian with the frustum guard, and which side (if any) clamped.
+    var txc = tc.x;
+    var sgx = 0.0;
+    let rx = tc.x / z;
+    if (rx > cam.lim_x) {
+        txc = cam.lim_x * z;
+        sgx = 1.0;
+    } else if (rx < -cam.lim_x) {
+        txc = -cam.lim_x * z;
+        sgx = -1.0;
+    }
+    var tyc = tc.y;
+    var sgy = 0.0;
+    let ry = tc.y / z;
+    if (ry > cam.lim_y) {
+        tyc = cam.lim_y * z;
+        sgy = 1.0;
+    } else if (ry < -cam.lim_y) {
+        tyc = -cam.lim_y * z;
+        sgy = -1.0;
+    }
+    let j00 = cam.fx * inv_z;
+    let j02 = -cam.fx * txc * inv_z * inv_z;
+    let j11 = cam.fy * inv_z;
+    let j12 = -cam.fy * tyc * inv_z * inv_z;
+    var tm: array<vec3<f32>, 2>;
+    tm[0] = j00 * w[0] + j02 * w[2];
+    tm[1] = j11 * w[1] + j12 * w[2];
+    let ts0 = vec3<f32>(dot(tm[0], sig[0]), dot(tm[0], sig[1]), dot(tm[0], sig[2]));
+    let ts1 = vec3<f32>(dot(tm[1], sig[0]), dot(tm[1], sig[1]), dot(tm[1], sig[2]));
+    let ca = dot(ts0, tm[0]) + 0.3;
+    let cb = dot(ts0, tm[1]);
+    let cc = dot(ts1, tm[1]) + 0.3;
+
+    // Conic → 2D covariance.
+    let det = ca * cc - cb * cb;
+    let id2 = 1.0 / (det * det);
+    let ga = g_conic.x;
+    let gb = g_conic.y;
+    let gc = g_conic.z;
+    let d_ca = (-cc * cc * ga + cb * cc * gb - cb * cb * gc) * id2;
+    let d_cb = (2.0 * cb * cc * ga - (ca * cc + cb * cb) * gb + 2.0 * ca * cb * gc) * id2;
+    let d_cc = (-cb * cb * ga + ca * cb * gb - ca * ca * gc) * id2;
+    // dΣ = Tᵀ G2 T, dT = 2 G2 T Σ.
+    var g2t: array<vec3<f32>, 2>;
+    g2t[0] = d_ca * tm[0] + (0.5 * d_cb) * tm[1];
+    g2t[1] = (0.5 * d_cb) * tm[0] + d_cc * tm[1];
+    var d_sig: array<vec3<f32>, 3>;
+    for (var a = 0u; a < 3u; a = a + 1u) {
+        d_sig[a] = tm[0][a] * g2t[0] + tm[1][a] * g2t[1];
+    }
+    var d_tm: array<vec3<f32>, 2>;
+    for (var rr = 0u; rr < 2u; rr = rr + 1u) {
+        d_tm[rr] = 2.0 * (g2t[rr].x * sig[0] + g2t[rr].y * sig[1] + g2t[rr].z * sig[2]);
+    }
+    let dj00 = dot(d_tm[0], w[0]);
+    let dj02 = dot(d_tm[0], w[2]);
+    let dj11 = dot(d_tm[1], w[1]);
+    let dj12 = dot(d_tm[1], w[2]);
+    let iz2 = inv_z * inv_z;
+    var d_t = vec3<f32>(0.0);
+    d_t.z = d_t.z - cam.fx * iz2 * dj00 - cam.fy * iz2 * dj11;
+    if (sgx == 0.0) {
+        d_t.x = d_t.x - cam.fx * iz2 * dj02;
+        d_t.z = d_t.z + 2.0 * cam.fx * tc.x * iz2 * inv_z * dj02;
+    } else {
+        d_t.z = d_t.z + cam.fx * sgx * cam.lim_x * iz2 * dj02;
+    }
+    if (sgy == 0.0) {
+        d_t.y = d_t.y - cam.fy * iz2 * dj12;
+        d_t.z = d_t.z + 2.0 * cam.fy * tc.y * iz2 * inv_z * dj12;
+    } else {
+        d_t.z = d_t.z + cam.fy * sgy * cam.lim_y * iz2 * dj12;
+    }
+    // Screen-space mean.
+    d_t.x = d_t.x + cam.fx * inv_z * g_xy.x;
+    d_t.y = d_t.y + cam.fy * inv_z * g_xy.y;
+    d_t.z = d_t.z - (cam.fx * tc.x * g_xy.x + cam.fy * tc.y * g_xy.y) * iz2;
+    // Camera space → world.
+    d_mean += w[0] * d_t.x + w[1] * d_t.y + w[2] * d_t.z;
+    grads[out] = d_mean.x;
+    grads[out + 1u] = d_mean.y;
+    grads[out + 2u] = d_mean.z;
+
+    // Σ = M Mᵀ → dM = 2 dΣ M; M = R S.
+    var d_m: array<vec3<f32>, 3>;
+    for (var a = 0u; a < 3u; a = a + 1u) {
+        d_m[a] = 2.0 * (d_sig[a].x * mm[0] + d_sig[a].y * mm[1] + d_sig[a].z * mm[2]);
+    }
+    for (var c = 0u; c < 3u; c = c + 1u) {
+        grads[out + 3u + c] = (r[0][c] * d_m[0][c] + r[1][c] * d_m[1][c] + r[2][c] * d_m[2][c]) * s[c];
+    }
+    var gr: array<vec3<f32>, 3>;
+    for (var a = 0u; a < 3u; a = a + 1u) {
+        gr[a] = d_m[a] * s;
+    }
+    let dq = vec4<f32>(
+        2.0 * (-qz * gr[0][1] + qy * gr[0][2] + qz * gr[1][0] - qx * gr[1][2] - qy * gr[2][0] + qx * gr[2][1]),
+        2.0 * (qy * gr[0][1] + qz * gr[0][2] + qy * gr[1][0] - 2.0 * qx * gr[1][1] - qw * gr[1][2] + qz * gr[2][0] + qw * gr[2][1] - 2.0 * qx * gr[2][2]),
+        2.0 * (-2.0 * qy * gr[0][0] + qx * gr[0][1] + qw * gr[0][2] + qx * gr[1][0] + qz * gr[1][2] - qw * gr[2][0] + qz * gr[2][1] - 2.0 * qy * gr[2][2]),
+        2.0 * (-2.0 * qz * gr[0][0] - qw * gr[0][1] + qx * gr[0][2] + qw * gr[1][0] - 2.0 * qz * gr[1][1] + qy * gr[1][2] + qx * gr[2][0] + qy * gr[2][1]),
+    );
+    let qd = dot(q, dq);
+    let d_rot = (dq - q * qd) / qn;
+    grads[out + 6u] = d_rot.x;
+    grads[out + 7u] = d_rot.y;
+    grads[out + 8u] = d_rot.z;
+    grads[out + 9u] = d_rot.w;
+}

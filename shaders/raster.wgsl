@@ -46,9 +46,13 @@ struct Splat {
 @group(0) @binding(3) var<storage, read> offsets: array<u32>;
 @group(0) @binding(4) var<storage, read_write> keys_hi: array<u32>;
 @group(0) @binding(5) var<storage, read_write> keys_lo: array<u32>;
+// The sort's values: each pair's position in emission order (its "entry"), so per-entry
+// results can be written back where each Gaussian's entries lie together.
 @group(0) @binding(6) var<storage, read_write> vals: array<u32>;
 // [start, end) per tile.
 @group(0) @binding(7) var<storage, read_write> ranges: array<vec2<u32>>;
+// The Gaussian of each entry.
+@group(0) @binding(8) var<storage, read_write> owner: array<u32>;
 
 @compute @workgroup_size(256)
 fn emit(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
@@ -63,7 +67,8 @@ fn emit(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
         for (var tx = r.x; tx < r.z; tx = tx + 1u) {
             keys_hi[o] = ty * cam.tiles_x + tx;
             keys_lo[o] = depth;
-            vals[o] = i;
+            vals[o] = o;
+            owner[o] = i;
             o = o + 1u;
         }
     }
@@ -88,6 +93,8 @@ fn tile_ranges(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
 
 @group(1) @binding(0) var<storage, read_write> image: array<f32>;
 @group(1) @binding(1) var<storage, read_write> final_t: array<f32>;
+// Per pixel: how many of its tile's entries were walked up to its last contributor.
+@group(1) @binding(2) var<storage, read_write> n_contrib: array<u32>;
 
 var<workgroup> s_xy: array<vec2<f32>, 256>;
 var<workgroup> s_conic: array<vec4<f32>, 256>;
@@ -108,6 +115,7 @@ fn raster(
     var trans = 1.0;
     var color = vec3<f32>(0.0);
     var done = !inside;
+    var contrib = 0u;
     let fx = f32(px) + 0.5;
     let fy = f32(py) + 0.5;
     let n = range.y - range.x;
@@ -116,7 +124,7 @@ fn raster(
         workgroupBarrier();
         let k = range.x + b * 256u + lid;
         if (k < range.y) {
-            let s = splats[vals[k]];
+            let s = splats[owner[vals[k]]];
             s_xy[lid] = s.xy;
             s_conic[lid] = s.conic;
             s_color[lid] = s.color;
@@ -146,6 +154,7 @@ fn raster(
             }
             color = color + s_color[j].xyz * (alpha * trans);
             trans = test_t;
+            contrib = b * 256u + j + 1u;
         }
     }
     if (inside) {
@@ -155,5 +164,6 @@ fn raster(
         image[p * 3u + 1u] = c.y;
         image[p * 3u + 2u] = c.z;
         final_t[p] = trans;
+        n_contrib[p] = contrib;
     }
 }

@@ -16,7 +16,7 @@ use std::sync::Arc;
 
 use wgpu::util::DeviceExt;
 
-use super::{ALPHA_MIN, MAX_IMAGE_EDGE, RenderError, RenderOptions, TILE, check_inputs};
+use super::{ALPHA_MIN, Gradients, MAX_IMAGE_EDGE, RenderError, RenderOptions, TILE, check_inputs};
 use crate::scene::{Camera, Gaussians};
 
 /// Why the GPU path could not run.
@@ -53,6 +53,8 @@ pub struct GpuRenderer {
 
 struct Pipelines {
     project: wgpu::ComputePipeline,
+    project_backward: wgpu::ComputePipeline,
+    raster_backward: wgpu::ComputePipeline,
     scan_blocks: wgpu::ComputePipeline,
     add_sums: wgpu::ComputePipeline,
     emit: wgpu::ComputePipeline,
@@ -61,8 +63,7 @@ struct Pipelines {
     sort: sort::SortPipelines,
 }
 
-/// A render of the GPU path.
-#[derive(Clone, Debug)]
+/// A render of the GPU path; keep it to run [`GpuRenderer::backward`].
 pub struct GpuRendered {
     pub width: u32,
     pub height: u32,
@@ -72,6 +73,35 @@ pub struct GpuRendered {
     pub final_t: Vec<f32>,
     /// (tile, Gaussian) pairs sorted and composited.
     pub tile_entries: usize,
+    state: GpuState,
+}
+
+impl std::fmt::Debug for GpuRendered {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("GpuRendered")
+            .field("width", &self.width)
+            .field("height", &self.height)
+            .field("tile_entries", &self.tile_entries)
+            .finish_non_exhaustive()
+    }
+}
+
+/// What the backward pass needs of a forward pass, on the device.
+struct GpuState {
+    n: u32,
+    total: u32,
+    tiles: (u32, u32),
+    rest_len: usize,
+    sh_degree: u8,
+    cam: wgpu::Buffer,
+    params: wgpu::Buffer,
+    splats: wgpu::Buffer,
+    offsets: wgpu::Buffer,
+    vals: wgpu::Buffer,
+    owner: wgpu::Buffer,
+    ranges: wgpu::Buffer,
+    final_t: wgpu::Buffer,
+    n_contrib: wgpu::Buffer,
 }
 
 /// Runs a wgpu future to completion (native wgpu resolves them without an executor).
@@ -195,8 +225,15 @@ impl GpuRenderer {
             "raster",
             include_str!("../../../shaders/raster.wgsl"),
         );
+        let backward = shader(
+            &device,
+            "backward",
+            include_str!("../../../shaders/backward.wgsl"),
+        );
         let pipes = Pipelines {
             project: pipeline(&device, &project, "project"),
+            project_backward: pipeline(&device, &project, "project_backward"),
+            raster_backward: pipeline(&device, &backward, "raster_backward"),
             scan_blocks: pipeline(&device, &scan, "scan_blocks"),
             add_sums: pipeline(&device, &scan, "add_sums"),
             emit: pipeline(&device, &raster, "emit"),
@@ -417,10 +454,12 @@ impl GpuRenderer {
         // Emit the keys, sort them, find each tile's range, composite.
         let mut encoder = self.device.create_command_encoder(&Default::default());
         let keys = sort::Pairs::new(self, total)?;
+        let owner = self.storage("owner", u64::from(total) * 4)?;
         let ranges = self.storage("ranges", u64::from(n_tiles) * 8)?;
         encoder.clear_buffer(&ranges, 0, None);
         let image = self.storage("image", u64::from(w) * u64::from(h) * 12)?;
         let final_t = self.storage("final T", u64::from(w) * u64::from(h) * 4)?;
+        let n_contrib = self.storage("contributors", u64::from(w) * u64::from(h) * 4)?;
         if total > 0 {
             let bg = bind(
                 &self.device,
@@ -434,6 +473,7 @@ impl GpuRenderer {
                     (4, &keys.hi),
                     (5, &keys.lo),
                     (6, &keys.val),
+                    (8, &owner),
                 ],
             );
             let mut pass = encoder.begin_compute_pass(&Default::default());
@@ -465,13 +505,19 @@ impl GpuRenderer {
                 &self.device,
                 &self.pipes.raster,
                 0,
-                &[(0, &cam_buf), (1, &splats), (6, &sorted.val), (7, &ranges)],
+                &[
+                    (0, &cam_buf),
+                    (1, &splats),
+                    (6, &sorted.val),
+                    (7, &ranges),
+                    (8, &owner),
+                ],
             );
             let bg1 = bind(
                 &self.device,
                 &self.pipes.raster,
                 1,
-                &[(0, &image), (1, &final_t)],
+                &[(0, &image), (1, &final_t), (2, &n_contrib)],
             );
             let mut pass = encoder.begin_compute_pass(&Default::default());
             pass.set_pipeline(&self.pipes.raster);
@@ -494,7 +540,166 @@ impl GpuRenderer {
             image: rgb.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect(),
             final_t: t.to_vec(),
             tile_entries: total as usize,
+            state: GpuState {
+                n,
+                total,
+                tiles: (tiles_x, tiles_y),
+                rest_len: rest,
+                sh_degree: g.sh_degree,
+                cam: cam_buf,
+                params: param_buf,
+                splats,
+                offsets: counts,
+                vals: sorted.val,
+                owner,
+                ranges,
+                final_t,
+                n_contrib,
+            },
         })
+    }
+
+    /// Back-propagates `d_image` (∂L/∂pixel, row-major RGB) through the GPU render `fwd` of
+    /// `g` (the scene that was rendered): the CPU reference's [`super::backward`], with the
+    /// same [`Gradients`] — deterministic (no float atomics), equal to it up to rounding.
+    pub fn backward(
+        &self,
+        g: &Gaussians<f32>,
+        fwd: &GpuRendered,
+        d_image: &[[f32; 3]],
+    ) -> Result<Gradients<f32>, GpuError> {
+        let st = &fwd.state;
+        let px = fwd.width as usize * fwd.height as usize;
+        if d_image.len() != px {
+            return Err(RenderError::GradientSize {
+                got: d_image.len(),
+                expected: px,
+            }
+            .into());
+        }
+        if g.len() != st.n as usize || g.rest_len() != st.rest_len || g.sh_degree != st.sh_degree {
+            return Err(RenderError::BadScene(format!(
+                "the render was of {} Gaussians, the scene has {}",
+                st.n,
+                g.len()
+            ))
+            .into());
+        }
+        let oom = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
+        let invalid = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let out = self.backward_checked(st, d_image);
+        let errors = [block_on(invalid.pop()), block_on(oom.pop())];
+        if let Some(e) = errors.into_iter().flatten().next() {
+            return Err(GpuError::Run(e.to_string()));
+        }
+        let (grads, aux) = out?;
+        let n = g.len();
+        let gs = 14 + st.rest_len;
+        let z3 = [0.0f32; 3];
+        let mut params = Gaussians {
+            means: vec![z3; n],
+            log_scales: vec![z3; n],
+            rotations: vec![[0.0; 4]; n],
+            opacity_logits: vec![0.0; n],
+            sh_dc: vec![z3; n],
+            sh_rest: vec![0.0; n * st.rest_len],
+            sh_degree: g.sh_degree,
+        };
+        let mut colors = vec![z3; n];
+        let mut blend_weights = vec![0.0; n];
+        let mut screen_xy = vec![[0.0; 2]; n];
+        for i in 0..n {
+            let p = &grads[i * gs..(i + 1) * gs];
+            params.means[i] = [p[0], p[1], p[2]];
+            params.log_scales[i] = [p[3], p[4], p[5]];
+            params.rotations[i] = [p[6], p[7], p[8], p[9]];
+            params.opacity_logits[i] = p[10];
+            params.sh_dc[i] = [p[11], p[12], p[13]];
+            params.sh_rest[i * st.rest_len..(i + 1) * st.rest_len].copy_from_slice(&p[14..]);
+            let a = &aux[i * 6..(i + 1) * 6];
+            colors[i] = [a[0], a[1], a[2]];
+            blend_weights[i] = a[3];
+            screen_xy[i] = [a[4], a[5]];
+        }
+        Ok(Gradients {
+            params,
+            colors,
+            blend_weights,
+            screen_xy,
+        })
+    }
+
+    /// The device work of [`Self::backward`]: parameter gradients and the auxiliary outputs,
+    /// read back.
+    fn backward_checked(
+        &self,
+        st: &GpuState,
+        d_image: &[[f32; 3]],
+    ) -> Result<(Vec<f32>, Vec<f32>), GpuError> {
+        let d_buf = self.storage("d image", d_image.len() as u64 * 12)?;
+        self.queue
+            .write_buffer(&d_buf, 0, bytemuck::cast_slice(d_image));
+        let slots = self.storage("entry slots", u64::from(st.total) * 40)?;
+        let n = u64::from(st.n);
+        let gs = 14 + st.rest_len as u64;
+        let grads = self.storage("gradients", n * gs * 4)?;
+        let aux = self.storage("aux", n * 24)?;
+        let mut encoder = self.device.create_command_encoder(&Default::default());
+        encoder.clear_buffer(&slots, 0, None);
+        if st.total > 0 {
+            let bg0 = bind(
+                &self.device,
+                &self.pipes.raster_backward,
+                0,
+                &[
+                    (0, &st.cam),
+                    (1, &st.splats),
+                    (2, &st.vals),
+                    (3, &st.owner),
+                    (4, &st.ranges),
+                    (5, &st.final_t),
+                    (6, &st.n_contrib),
+                    (7, &d_buf),
+                ],
+            );
+            let bg1 = bind(&self.device, &self.pipes.raster_backward, 1, &[(0, &slots)]);
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&self.pipes.raster_backward);
+            pass.set_bind_group(0, &bg0, &[]);
+            pass.set_bind_group(1, &bg1, &[]);
+            pass.dispatch_workgroups(st.tiles.0, st.tiles.1, 1);
+        }
+        {
+            let bg = bind(
+                &self.device,
+                &self.pipes.project_backward,
+                0,
+                &[
+                    (0, &st.cam),
+                    (1, &st.params),
+                    (4, &st.offsets),
+                    (5, &slots),
+                    (6, &grads),
+                    (7, &aux),
+                ],
+            );
+            let (gx, gy) = grid(st.n.div_ceil(256));
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&self.pipes.project_backward);
+            pass.set_bind_group(0, &bg, &[]);
+            pass.dispatch_workgroups(gx, gy, 1);
+        }
+        // Gradients and aux through one readback.
+        let (gbytes, abytes) = (n * gs * 4, n * 24);
+        let out = self.storage("out", gbytes + abytes)?;
+        if gbytes > 0 {
+            encoder.copy_buffer_to_buffer(&grads, 0, &out, 0, gbytes);
+            encoder.copy_buffer_to_buffer(&aux, 0, &out, gbytes, abytes);
+        }
+        let bytes = self.read(encoder, &out, gbytes + abytes)?;
+        let floats: &[f32] = bytemuck::cast_slice(&bytes);
+        let (g, a) = floats.split_at(gbytes as usize / 4);
+        Ok((g.to_vec(), a.to_vec()))
     }
 }
 

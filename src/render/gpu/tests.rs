@@ -290,3 +290,149 @@ fn a_shared_scene_renders_as_on_the_cpu() {
         assert_parity(&g, cam, &RenderOptions::default());
     }
 }
+
+/// Largest |GPU − CPU| of each gradient kind, relative to the largest |CPU| of that kind.
+fn gradient_gaps(
+    g: &Gaussians,
+    cam: &Camera,
+    opts: &RenderOptions,
+    seed: u64,
+) -> Vec<(&'static str, f32)> {
+    let cpu_fwd = render(g, cam, opts).unwrap();
+    let r = gpu();
+    let gpu_fwd = r.render(g, cam, opts).unwrap();
+    let mut rng = Lcg(seed);
+    let d_image: Vec<[f32; 3]> = (0..cpu_fwd.image.len())
+        .map(|_| {
+            [
+                rng.range(-1.0, 1.0),
+                rng.range(-1.0, 1.0),
+                rng.range(-1.0, 1.0),
+            ]
+        })
+        .collect();
+    let a = crate::render::backward(g, &cpu_fwd, &d_image).unwrap();
+    let b = r.backward(g, &gpu_fwd, &d_image).unwrap();
+    let flat3 = |v: &[[f32; 3]]| v.iter().flatten().copied().collect::<Vec<_>>();
+    let flat4 = |v: &[[f32; 4]]| v.iter().flatten().copied().collect::<Vec<_>>();
+    let flat2 = |v: &[[f32; 2]]| v.iter().flatten().copied().collect::<Vec<_>>();
+    let kinds: Vec<(&str, Vec<f32>, Vec<f32>)> = vec![
+        ("means", flat3(&a.params.means), flat3(&b.params.means)),
+        (
+            "log_scales",
+            flat3(&a.params.log_scales),
+            flat3(&b.params.log_scales),
+        ),
+        (
+            "rotations",
+            flat4(&a.params.rotations),
+            flat4(&b.params.rotations),
+        ),
+        (
+            "opacity_logits",
+            a.params.opacity_logits.clone(),
+            b.params.opacity_logits.clone(),
+        ),
+        ("sh_dc", flat3(&a.params.sh_dc), flat3(&b.params.sh_dc)),
+        (
+            "sh_rest",
+            a.params.sh_rest.clone(),
+            b.params.sh_rest.clone(),
+        ),
+        ("colors", flat3(&a.colors), flat3(&b.colors)),
+        (
+            "blend_weights",
+            a.blend_weights.clone(),
+            b.blend_weights.clone(),
+        ),
+        ("screen_xy", flat2(&a.screen_xy), flat2(&b.screen_xy)),
+    ];
+    kinds
+        .into_iter()
+        .map(|(name, x, y)| {
+            assert_eq!(x.len(), y.len(), "{name}");
+            let scale = x.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-12);
+            let gap = x
+                .iter()
+                .zip(&y)
+                .fold(0f32, |m, (p, q)| m.max((p - q).abs()));
+            (name, gap / scale)
+        })
+        .collect()
+}
+
+#[test]
+fn gradients_match_the_cpu_reference() {
+    let colors: Arc<[[f32; 3]]> = (0..1500)
+        .map(|i| [(i % 5) as f32 / 5.0, 0.3, 0.9])
+        .collect();
+    let cases = [
+        (
+            "SH0",
+            scene(21, 1500, 0, 1.2, (-4.0, -2.5)),
+            RenderOptions::default(),
+        ),
+        (
+            "SH3 on a background",
+            scene(22, 1500, 3, 1.2, (-4.0, -2.5)),
+            RenderOptions {
+                background: [0.3, 0.6, 0.9],
+                ..Default::default()
+            },
+        ),
+        (
+            "colour override",
+            scene(23, 1500, 1, 1.2, (-4.0, -2.5)),
+            RenderOptions {
+                colors: Some(colors),
+                ..Default::default()
+            },
+        ),
+        // Dense: many batches per tile, saturated pixels; wide: clamped Jacobians at the edges.
+        (
+            "dense",
+            scene(24, 3000, 0, 0.1, (-3.5, -2.5)),
+            RenderOptions::default(),
+        ),
+        (
+            "wide",
+            scene(25, 800, 2, 4.0, (-3.0, -1.5)),
+            RenderOptions::default(),
+        ),
+    ];
+    let cam = camera(72, 56, 60.0);
+    for (name, g, opts) in cases {
+        for (kind, gap) in gradient_gaps(&g, &cam, &opts, 9) {
+            eprintln!("{name}: {kind} {gap:.2e}");
+            assert!(
+                gap < 1e-3,
+                "{name}: {kind} differs by {gap:.2e} of its largest value"
+            );
+        }
+    }
+}
+
+#[test]
+fn the_gpu_backward_is_deterministic() {
+    let g = scene(31, 2000, 3, 1.0, (-4.0, -2.5));
+    let cam = camera(64, 64, 60.0);
+    let r = gpu();
+    let d_image = vec![[0.01f32, -0.02, 0.03]; 64 * 64];
+    let run = || {
+        let f = r.render(&g, &cam, &RenderOptions::default()).unwrap();
+        r.backward(&g, &f, &d_image).unwrap()
+    };
+    let (a, b) = (run(), run());
+    assert_eq!(a.params.means, b.params.means);
+    assert_eq!(a.params.sh_rest, b.params.sh_rest);
+    assert_eq!(a.blend_weights, b.blend_weights);
+    // A gradient of the wrong size is the reference's typed error.
+    let f = r.render(&g, &cam, &RenderOptions::default()).unwrap();
+    match r.backward(&g, &f, &d_image[1..]) {
+        Err(GpuError::Render(RenderError::GradientSize { .. })) => {}
+        other => panic!(
+            "expected a gradient-size error, got {:?}",
+            other.map(|_| ())
+        ),
+    }
+}
