@@ -60,15 +60,27 @@ fn bench(name: &str, g: &Gaussians, cam: &Camera, reps: usize, gpu: Option<&GpuR
         std::hint::black_box((r, grads));
     }
     // The GPU path: upload, every kernel, and the image read back (what a caller waits for).
-    let gpu_ms = gpu.map_or("–".to_string(), |r| {
-        let warm = r.render(g, cam, &opts).expect("gpu render");
-        let mut t = Vec::new();
+    let gpu_ms = gpu.map_or("– | –".to_string(), |r| {
+        let warm = match r.render(g, cam, &opts) {
+            Ok(w) => w,
+            Err(e) => return format!("{e} | –"),
+        };
+        let (mut fwd, mut both) = (Vec::new(), Vec::new());
         for _ in 0..reps {
             let t0 = Instant::now();
             std::hint::black_box(r.render(g, cam, &opts).expect("gpu render"));
-            t.push(t0.elapsed());
+            fwd.push(t0.elapsed());
+            let t1 = Instant::now();
+            let f = r.render(g, cam, &opts).expect("gpu render");
+            std::hint::black_box(r.backward(g, &f, &d_image).expect("gpu backward"));
+            both.push(t1.elapsed());
         }
-        format!("{:.1} ({} entries)", median(t), warm.tile_entries)
+        format!(
+            "{:.1} ({} entries) | {:.1}",
+            median(fwd),
+            warm.tile_entries,
+            median(both)
+        )
     });
     println!(
         "| {name} | {} | {}×{} | {} | {} | {:.1} | {:.1} | {gpu_ms} |",
@@ -107,7 +119,7 @@ fn main() {
         }
     };
     println!(
-        "threads: {}, reps: {reps} (median), wgpu adapter: {}\n\n| scene | Gaussians | image | visible | tile entries | forward ms | forward+backward ms | wgpu forward ms |\n|---|---|---|---|---|---|---|---|",
+        "threads: {}, reps: {reps} (median), wgpu adapter: {}\n\n| scene | Gaussians | image | visible | tile entries | forward ms | forward+backward ms | wgpu forward ms | wgpu forward+backward ms |\n|---|---|---|---|---|---|---|---|---|",
         rayon::current_num_threads(),
         gpu.as_ref().map_or("none".to_string(), |r| format!(
             "{} ({:?}, {:?})",

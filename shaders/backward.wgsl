@@ -2,45 +2,12 @@
 // - `raster_backward`: one 16×16 workgroup per tile walks the tile's entries back to front,
 //   each pixel rebuilding its transmittance from the forward pass's final T, and writes each
 //   entry's screen-space gradient (∂L/∂xy, ∂L/∂conic, ∂L/∂opacity, ∂L/∂colour, Σ α·T),
-//   summed over the tile's pixels by a fixed tree, to the entry's slot in emission order;
+//   summed over the tile's pixels in a fixed order, to the entry's slot in emission order;
 // - `project_backward` (in `project.wgsl`): one invocation per Gaussian sums its entries' slots
 //   in order (its tiles, row-major) and carries the sum through the projection to ∂L/∂(mean,
 //   log-scale, quaternion, opacity logit, SH).
 // No float atomics: the result is the same on every run. Workgroup memory stays under the 16 KiB
-// every adapter offers: splats are loaded 128 at a time, and the tree folds 256 pixels into 128.
-
-struct Camera {
-    w0: vec4<f32>,
-    w1: vec4<f32>,
-    w2: vec4<f32>,
-    t: vec4<f32>,
-    center: vec4<f32>,
-    fx: f32,
-    fy: f32,
-    cx: f32,
-    cy: f32,
-    lim_x: f32,
-    lim_y: f32,
-    near: f32,
-    alpha_min: f32,
-    bg: vec4<f32>,
-    width: u32,
-    height: u32,
-    tiles_x: u32,
-    tiles_y: u32,
-    n: u32,
-    sh_degree: u32,
-    stride: u32,
-    override_colors: u32,
-}
-
-struct Splat {
-    xy: vec2<f32>,
-    depth: f32,
-    opacity: f32,
-    conic: vec4<f32>,
-    color: vec4<f32>,
-}
+// every adapter offers: splats are loaded 128 at a time.
 
 // Floats per entry slot: xy (2), conic (3), opacity (1), colour (3), blend weight (1).
 const SLOT: u32 = 10u;
@@ -62,7 +29,7 @@ var<workgroup> s_xy: array<vec2<f32>, BATCH>;
 var<workgroup> s_conic: array<vec4<f32>, BATCH>;
 var<workgroup> s_color: array<vec4<f32>, BATCH>;
 var<workgroup> s_opacity: array<f32, BATCH>;
-var<workgroup> red: array<array<f32, 128>, 10>;
+var<workgroup> red: array<array<f32, 256>, 10>;
 var<workgroup> max_contrib: atomic<u32>;
 var<workgroup> walk: u32;
 
@@ -153,43 +120,36 @@ fn raster_backward(
                     }
                 }
             }
-            // Pixels 128–255 park their values, pixels 0–127 add theirs, then a tree.
-            var g: array<f32, 10>;
-            g[0] = g_xy.x;
-            g[1] = g_xy.y;
-            g[2] = g_conic.x;
-            g[3] = g_conic.y;
-            g[4] = g_conic.z;
-            g[5] = g_opacity;
-            g[6] = g_color.x;
-            g[7] = g_color.y;
-            g[8] = g_color.z;
-            g[9] = g_w;
-            if (lid >= 128u) {
-                for (var f = 0u; f < SLOT; f = f + 1u) {
-                    red[f][lid - 128u] = g[f];
+            // Sum over the 256 pixels in a fixed order with three barriers: each pixel
+            // parks its values; 160 threads sum one (value, pixel row) each; 10 threads sum
+            // the 16 row sums and write the entry's slot.
+            red[0][lid] = g_xy.x;
+            red[1][lid] = g_xy.y;
+            red[2][lid] = g_conic.x;
+            red[3][lid] = g_conic.y;
+            red[4][lid] = g_conic.z;
+            red[5][lid] = g_opacity;
+            red[6][lid] = g_color.x;
+            red[7][lid] = g_color.y;
+            red[8][lid] = g_color.z;
+            red[9][lid] = g_w;
+            workgroupBarrier();
+            if (lid < 160u) {
+                let f = lid / 16u;
+                let row = (lid % 16u) * 16u;
+                var sum = 0.0;
+                for (var k = 0u; k < 16u; k = k + 1u) {
+                    sum = sum + red[f][row + k];
                 }
+                red[f][row] = sum;
             }
             workgroupBarrier();
-            if (lid < 128u) {
-                for (var f = 0u; f < SLOT; f = f + 1u) {
-                    red[f][lid] = g[f] + red[f][lid];
+            if (lid < SLOT) {
+                var sum = 0.0;
+                for (var row = 0u; row < 256u; row = row + 16u) {
+                    sum = sum + red[lid][row];
                 }
-            }
-            workgroupBarrier();
-            for (var half = 64u; half > 0u; half = half / 2u) {
-                if (lid < half) {
-                    for (var f = 0u; f < SLOT; f = f + 1u) {
-                        red[f][lid] = red[f][lid] + red[f][lid + half];
-                    }
-                }
-                workgroupBarrier();
-            }
-            if (lid == 0u) {
-                let slot = vals[range.x + start + j] * SLOT;
-                for (var f = 0u; f < SLOT; f = f + 1u) {
-                    entry_grads[slot + f] = red[f][0];
-                }
+                entry_grads[vals[range.x + start + j] * SLOT + lid] = sum;
             }
             // The next entry's values must not land before the sum is read.
             workgroupBarrier();

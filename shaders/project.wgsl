@@ -1,42 +1,7 @@
 // Per-Gaussian projection: the CPU reference's `render::project` and `Splat::new` in f32.
 // One invocation per Gaussian: camera-space centre, EWA 2D covariance (+0.3 px² low-pass), its
 // inverse (the conic), SH colour, opacity, the exact α ≥ 1/255 footprint's pixel rectangle, and
-// how many 16×16 tiles that rectangle covers.
-
-struct Camera {
-    w0: vec4<f32>,
-    w1: vec4<f32>,
-    w2: vec4<f32>,
-    t: vec4<f32>,
-    center: vec4<f32>,
-    fx: f32,
-    fy: f32,
-    cx: f32,
-    cy: f32,
-    lim_x: f32,
-    lim_y: f32,
-    near: f32,
-    alpha_min: f32,
-    bg: vec4<f32>,
-    width: u32,
-    height: u32,
-    tiles_x: u32,
-    tiles_y: u32,
-    n: u32,
-    sh_degree: u32,
-    stride: u32,
-    override_colors: u32,
-}
-
-// One visible Gaussian: screen centre, depth, opacity; conic (a, b, c) and the footprint's σ
-// threshold; colour.
-struct Splat {
-    xy: vec2<f32>,
-    depth: f32,
-    opacity: f32,
-    conic: vec4<f32>,
-    color: vec4<f32>,
-}
+// how many 16×16 tiles the footprint touches (`band_tiles`, row by row).
 
 @group(0) @binding(0) var<uniform> cam: Camera;
 // Per Gaussian, `cam.stride` floats: mean (3), log-scale (3), quaternion w x y z (4), opacity
@@ -44,7 +9,7 @@ struct Splat {
 // overrides the three floats after those are the override colour.
 @group(0) @binding(1) var<storage, read> params: array<f32>;
 @group(0) @binding(2) var<storage, read_write> splats: array<Splat>;
-// Tile rectangle [x0, x1) × [y0, y1) of each Gaussian (zero-sized when it is not drawn).
+// Pixel rectangle [x0, x1) × [y0, y1) of each Gaussian's footprint (zero when it is not drawn).
 @group(0) @binding(3) var<storage, read_write> tiles: array<vec4<u32>>;
 // Tiles per Gaussian; one more entry than Gaussians (kept 0) so its exclusive scan ends with
 // the total.
@@ -221,13 +186,17 @@ fn project(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroup
     if (rx0 >= rx1 || ry0 >= ry1) {
         return;
     }
-    splats[i] = Splat(xy, z, o, vec4<f32>(conic, thr), vec4<f32>(color, 0.0));
-    let tx0 = rx0 / 16u;
-    let tx1 = (rx1 - 1u) / 16u + 1u;
-    let ty0 = ry0 / 16u;
-    let ty1 = (ry1 - 1u) / 16u + 1u;
-    tiles[i] = vec4<u32>(tx0, ty0, tx1, ty1);
-    counts[i] = (tx1 - tx0) * (ty1 - ty0);
+    let sp = Splat(xy, z, o, vec4<f32>(conic, thr), vec4<f32>(color, 0.0));
+    splats[i] = sp;
+    let rect = vec4<u32>(rx0, ry0, rx1, ry1);
+    tiles[i] = rect;
+    var count = 0u;
+    for (var ty = ry0 / 16u; ty <= (ry1 - 1u) / 16u; ty = ty + 1u) {
+        let rows = band_rows(rect, ty);
+        let span = band_tiles(sp, rect, rows.x, rows.y, cam.tiles_x);
+        count = count + (span.y - span.x);
+    }
+    counts[i] = count;
 }
 
 // ---- Backward: the screen-space gradients of `shaders/backward.wgsl`'s entry slots through the
@@ -235,7 +204,6 @@ fn project(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroup
 
 // Floats per entry slot: xy (2), conic (3), opacity (1), colour (3), blend weight (1).
 const SLOT: u32 = 10u;
-
 
 @group(0) @binding(5) var<storage, read> slots: array<f32>;
 // ∂L/∂parameters, `cam.stride` floats per Gaussian laid out like `params` (minus the

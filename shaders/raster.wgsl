@@ -7,39 +7,6 @@
 //   α = min(0.99, o·e^(−σ)), skipped outside the α ≥ 1/255 footprint and below 1/255, stop
 //   before T would fall below 1e-4, then the background behind what is left of T.
 
-struct Camera {
-    w0: vec4<f32>,
-    w1: vec4<f32>,
-    w2: vec4<f32>,
-    t: vec4<f32>,
-    center: vec4<f32>,
-    fx: f32,
-    fy: f32,
-    cx: f32,
-    cy: f32,
-    lim_x: f32,
-    lim_y: f32,
-    near: f32,
-    alpha_min: f32,
-    bg: vec4<f32>,
-    width: u32,
-    height: u32,
-    tiles_x: u32,
-    tiles_y: u32,
-    n: u32,
-    sh_degree: u32,
-    stride: u32,
-    override_colors: u32,
-}
-
-struct Splat {
-    xy: vec2<f32>,
-    depth: f32,
-    opacity: f32,
-    conic: vec4<f32>,
-    color: vec4<f32>,
-}
-
 @group(0) @binding(0) var<uniform> cam: Camera;
 @group(0) @binding(1) var<storage, read> splats: array<Splat>;
 @group(0) @binding(2) var<storage, read> tiles: array<vec4<u32>>;
@@ -60,11 +27,17 @@ fn emit(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) 
     if (i >= cam.n) {
         return;
     }
-    let r = tiles[i];
     var o = offsets[i];
-    let depth = bitcast<u32>(splats[i].depth);
-    for (var ty = r.y; ty < r.w; ty = ty + 1u) {
-        for (var tx = r.x; tx < r.z; tx = tx + 1u) {
+    if (o == offsets[i + 1u]) {
+        return;
+    }
+    let rect = tiles[i];
+    let s = splats[i];
+    let depth = bitcast<u32>(s.depth);
+    for (var ty = rect.y / 16u; ty <= (rect.w - 1u) / 16u; ty = ty + 1u) {
+        let rows = band_rows(rect, ty);
+        let span = band_tiles(s, rect, rows.x, rows.y, cam.tiles_x);
+        for (var tx = span.x; tx < span.y; tx = tx + 1u) {
             keys_hi[o] = ty * cam.tiles_x + tx;
             keys_lo[o] = depth;
             vals[o] = o;
@@ -100,6 +73,8 @@ var<workgroup> s_xy: array<vec2<f32>, 256>;
 var<workgroup> s_conic: array<vec4<f32>, 256>;
 var<workgroup> s_color: array<vec4<f32>, 256>;
 var<workgroup> s_opacity: array<f32, 256>;
+var<workgroup> n_done: atomic<u32>;
+var<workgroup> all_done: u32;
 
 @compute @workgroup_size(16, 16)
 fn raster(
@@ -120,8 +95,22 @@ fn raster(
     let fy = f32(py) + 0.5;
     let n = range.y - range.x;
     let batches = (n + 255u) / 256u;
+    if (lid == 0u) {
+        atomicStore(&n_done, 0u);
+    }
+    workgroupBarrier();
+    if (done) {
+        atomicAdd(&n_done, 1u);
+    }
     for (var b = 0u; b < batches; b = b + 1u) {
+        // Stop when every pixel of the tile is done.
         workgroupBarrier();
+        if (lid == 0u) {
+            all_done = atomicLoad(&n_done);
+        }
+        if (workgroupUniformLoad(&all_done) == 256u) {
+            break;
+        }
         let k = range.x + b * 256u + lid;
         if (k < range.y) {
             let s = splats[owner[vals[k]]];
@@ -150,6 +139,7 @@ fn raster(
             let test_t = trans * (1.0 - alpha);
             if (test_t < 1e-4) {
                 done = true;
+                atomicAdd(&n_done, 1u);
                 break;
             }
             color = color + s_color[j].xyz * (alpha * trans);

@@ -214,23 +214,47 @@ impl GpuRenderer {
             ..Default::default()
         }))
         .map_err(|e| GpuError::Device(e.to_string()))?;
+        let invalid = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let pipes = Self::pipelines(&device);
+        if let Some(e) = block_on(invalid.pop()) {
+            return Err(GpuError::Device(format!("the kernels do not build: {e}")));
+        }
+        Ok(Self {
+            device,
+            queue,
+            info,
+            pipes,
+        })
+    }
+
+    fn pipelines(device: &wgpu::Device) -> Pipelines {
+        let device = device.clone();
         let project = shader(
             &device,
             "project",
-            include_str!("../../../shaders/project.wgsl"),
+            concat!(
+                include_str!("../../../shaders/common.wgsl"),
+                include_str!("../../../shaders/project.wgsl")
+            ),
         );
         let scan = shader(&device, "scan", include_str!("../../../shaders/scan.wgsl"));
         let raster = shader(
             &device,
             "raster",
-            include_str!("../../../shaders/raster.wgsl"),
+            concat!(
+                include_str!("../../../shaders/common.wgsl"),
+                include_str!("../../../shaders/raster.wgsl")
+            ),
         );
         let backward = shader(
             &device,
             "backward",
-            include_str!("../../../shaders/backward.wgsl"),
+            concat!(
+                include_str!("../../../shaders/common.wgsl"),
+                include_str!("../../../shaders/backward.wgsl")
+            ),
         );
-        let pipes = Pipelines {
+        Pipelines {
             project: pipeline(&device, &project, "project"),
             project_backward: pipeline(&device, &project, "project_backward"),
             raster_backward: pipeline(&device, &backward, "raster_backward"),
@@ -240,13 +264,7 @@ impl GpuRenderer {
             tile_ranges: pipeline(&device, &raster, "tile_ranges"),
             raster: pipeline(&device, &raster, "raster"),
             sort: sort::SortPipelines::new(&device),
-        };
-        Ok(Self {
-            device,
-            queue,
-            info,
-            pipes,
-        })
+        }
     }
 
     /// The adapter this renderer runs on.
