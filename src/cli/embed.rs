@@ -26,8 +26,10 @@ pub(crate) struct ModelArgs {
     /// Decoder weights (.bpk with its .json sidecar); default: the shipped weights for --bits.
     #[arg(long)]
     weights: Option<PathBuf>,
-    /// Device for the networks.
-    #[arg(long, value_enum, default_value = "flex")]
+    /// Device: cpu (burn `flex`, the CPU rasterizer), wgpu (any wgpu adapter, lavapipe
+    /// included) or auto (a hardware GPU when there is one, else the CPU). `embed` renders
+    /// and back-propagates its views there too.
+    #[arg(long, value_enum, default_value = "auto")]
     device: DeviceArg,
 }
 
@@ -193,6 +195,8 @@ pub(crate) fn embed_cmd(a: &EmbedArgs) -> Result<()> {
         );
     }
     let model = load_model(&a.model, a.bits, true)?;
+    let rasterizer = crate::render::gpu::Rasterizer::open(a.model.device.into())?;
+    eprintln!("rasterizer: {}", rasterizer.describe());
     let mut opts: EmbedOptions = match &a.config {
         Some(p) => {
             let bytes = std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?;
@@ -202,6 +206,7 @@ pub(crate) fn embed_cmd(a: &EmbedArgs) -> Result<()> {
         None if a.paper => EmbedOptions::paper(),
         None => EmbedOptions::default(),
     };
+    opts.finetune.rasterizer = rasterizer;
     opts.no_group_mask |= a.no_group_mask;
     opts.reference &= !a.no_reference;
     opts.projection.matched &= !a.no_matched_head;

@@ -248,17 +248,40 @@ struct TrainArgs {
     eval_repeats: Option<usize>,
 }
 
+/// `--device`: where the networks (and, for `embed`, the rasterizer) run.
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
 enum DeviceArg {
-    Flex,
+    /// The CPU: burn's `flex` backend and the CPU reference rasterizer.
+    #[value(alias = "flex")]
+    Cpu,
+    /// wgpu on the best adapter, Mesa's software lavapipe included.
     Wgpu,
+    /// A hardware GPU when there is one, else the CPU.
+    Auto,
 }
 
 impl From<DeviceArg> for DeviceChoice {
     fn from(d: DeviceArg) -> Self {
         match d {
-            DeviceArg::Flex => DeviceChoice::Flex,
+            DeviceArg::Cpu => DeviceChoice::Flex,
             DeviceArg::Wgpu => DeviceChoice::Wgpu,
+            DeviceArg::Auto => {
+                if crate::render::gpu::shared(crate::render::gpu::AdapterChoice::Hardware).is_ok() {
+                    DeviceChoice::Wgpu
+                } else {
+                    DeviceChoice::Flex
+                }
+            }
+        }
+    }
+}
+
+impl From<DeviceArg> for crate::render::gpu::DeviceRequest {
+    fn from(d: DeviceArg) -> Self {
+        match d {
+            DeviceArg::Cpu => Self::Cpu,
+            DeviceArg::Wgpu => Self::Wgpu,
+            DeviceArg::Auto => Self::Auto,
         }
     }
 }
@@ -306,7 +329,7 @@ struct WeightsArgs {
     #[arg(long)]
     weights: Option<PathBuf>,
     /// Device for the networks.
-    #[arg(long, value_enum, default_value = "flex")]
+    #[arg(long, value_enum, default_value = "cpu")]
     device: DeviceArg,
 }
 

@@ -276,8 +276,12 @@ pub fn embed(
         };
         finetune_cameras.extend(calibration_cameras(g, cameras, &jitter).split_off(cameras.len()));
     }
-    let views: Vec<View> =
-        target_views(g, &scaled_views(&finetune_cameras, &opts.view_scales)?, &ro)?;
+    let views: Vec<View> = target_views(
+        g,
+        &scaled_views(&finetune_cameras, &opts.view_scales)?,
+        &ro,
+        &opts.finetune.rasterizer,
+    )?;
     let t_targets = t.elapsed().as_secs_f64();
 
     report_phase(&mut progress, Phase::Plan)?;

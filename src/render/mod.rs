@@ -127,6 +127,9 @@ pub enum RenderError {
     GradientSize { got: usize, expected: usize },
     #[error("near plane must be positive and finite, got {0}")]
     BadNear(f32),
+    /// The GPU path failed (device lost, out of memory, a limit): see [`gpu::GpuError`].
+    #[error("the GPU rasterizer failed: {0}")]
+    Device(String),
 }
 
 /// Largest image edge the rasterizer accepts.

@@ -3,6 +3,8 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::render::gpu::Rasterizer;
+
 use crate::attack::diff::EotConfig;
 use crate::render::RenderOptions;
 
@@ -157,6 +159,11 @@ pub struct FinetuneConfig {
     /// Background of every render (linear RGB; must be the targets').
     pub background: [f32; 3],
     pub seed: u64,
+    /// Which rasterizer renders the steps' views and back-propagates through them (not part of
+    /// the options a user sends: the worker or the command line picks it). On the GPU every
+    /// view is rasterised (no CPU replays); results equal the CPU's up to rounding.
+    #[serde(skip)]
+    pub rasterizer: Rasterizer,
 }
 
 impl FinetuneConfig {
@@ -212,6 +219,7 @@ impl Default for FinetuneConfig {
             dwt_levels: 2,
             background: [0.0; 3],
             seed: 0,
+            rasterizer: Rasterizer::Cpu,
         }
     }
 }

@@ -302,7 +302,7 @@ pub fn finetune(
     let geometry_fixed = [lr.means, lr.opacity, lr.rotation, lr.scale]
         .iter()
         .all(|&r| r == 0.0);
-    let mut renderer = Renderer::new(views, render_opts, geometry_fixed);
+    let mut renderer = Renderer::new(views, render_opts, geometry_fixed, cfg.rasterizer.clone());
 
     for step in 1..=cfg.steps + cfg.extra_steps {
         let t0 = Instant::now();

@@ -8,6 +8,7 @@ use serde::{Deserialize, Serialize};
 use super::FinetuneError;
 use crate::decoder::WatermarkModel;
 use crate::decoder::eval::decode_images;
+use crate::render::gpu::{GpuRendered, Rasterizer};
 use crate::render::{self, RenderError, RenderOptions, Rendered, Replay};
 use crate::scene::{Camera, Gaussians};
 
@@ -23,23 +24,23 @@ pub struct View {
     pub target: Vec<[f32; 3]>,
 }
 
-/// Renders the targets (the original scene through each camera, clamped to [0, 1]).
+/// Renders the targets (the original scene through each camera, clamped to [0, 1]) with the
+/// rasterizer the finetuning will use, so that the unchanged scene matches its targets exactly
+/// (a difference of rounding between the CPU and the GPU would otherwise be a gradient, and
+/// Adam scales any gradient up to a full step).
 pub fn target_views(
     original: &Gaussians,
     cameras: &[Camera],
     opts: &RenderOptions,
+    rasterizer: &Rasterizer,
 ) -> Result<Vec<View>, RenderError> {
     cameras
         .iter()
         .map(|c| {
-            let r = render::render(original, c, opts)?;
+            let (_, _, image) = rasterizer.render_image(original, c, opts)?;
             Ok(View {
                 camera: c.clone(),
-                target: r
-                    .image
-                    .iter()
-                    .map(|p| p.map(|v| v.clamp(0.0, 1.0)))
-                    .collect(),
+                target: image.iter().map(|p| p.map(|v| v.clamp(0.0, 1.0))).collect(),
             })
         })
         .collect()
@@ -117,6 +118,7 @@ pub(super) fn views_psnr(renderer: &mut Renderer, g: &Gaussians) -> Result<f32, 
 pub(super) enum Frame {
     Raster(Box<Rendered<f32>>),
     Replayed { view: usize, image: Vec<[f32; 3]> },
+    Gpu(Box<GpuRendered>),
 }
 
 impl Frame {
@@ -125,6 +127,7 @@ impl Frame {
         match self {
             Frame::Raster(r) => &r.image,
             Frame::Replayed { image, .. } => image,
+            Frame::Gpu(r) => &r.image,
         }
     }
 }
@@ -133,24 +136,36 @@ impl Frame {
 pub(super) struct Renderer<'a> {
     views: &'a [View],
     opts: &'a RenderOptions,
-    /// Per view, its replay once recorded; `None` when the geometry moves.
+    /// Per view, its replay once recorded; `None` when the geometry moves or on the GPU.
     replays: Option<Vec<Option<Replay<f32>>>>,
     bytes: usize,
+    rasterizer: Rasterizer,
 }
 
 impl<'a> Renderer<'a> {
     /// `geometry_fixed`: no step will move a mean, scale, rotation or opacity (then views are
-    /// replayed).
-    pub fn new(views: &'a [View], opts: &'a RenderOptions, geometry_fixed: bool) -> Self {
+    /// replayed on the CPU; the GPU rasterises them every time).
+    pub fn new(
+        views: &'a [View],
+        opts: &'a RenderOptions,
+        geometry_fixed: bool,
+        rasterizer: Rasterizer,
+    ) -> Self {
+        let replay = geometry_fixed && rasterizer == Rasterizer::Cpu;
         Self {
             views,
             opts,
-            replays: geometry_fixed.then(|| views.iter().map(|_| None).collect()),
+            replays: replay.then(|| views.iter().map(|_| None).collect()),
             bytes: 0,
+            rasterizer,
         }
     }
 
     pub fn render(&mut self, g: &Gaussians, v: usize) -> Result<Frame, RenderError> {
+        if let Rasterizer::Gpu(gpu) = &self.rasterizer {
+            let r = gpu.render(g, &self.views[v].camera, self.opts)?;
+            return Ok(Frame::Gpu(Box::new(r)));
+        }
         if let Some(replays) = &mut self.replays {
             if replays[v].is_none() && self.bytes < REPLAY_BUDGET_BYTES {
                 let r = Replay::record(g, &self.views[v].camera, self.opts)?;
@@ -192,6 +207,15 @@ impl<'a> Renderer<'a> {
                 .iter()
                 .map(|d| Ok(render::backward(g, r, d)?.params))
                 .collect(),
+            Frame::Gpu(r) => {
+                let Rasterizer::Gpu(gpu) = &self.rasterizer else {
+                    unreachable!("a GPU frame comes from the GPU rasterizer")
+                };
+                d_images
+                    .iter()
+                    .map(|d| Ok(gpu.backward(g, r, d)?.params))
+                    .collect()
+            }
             Frame::Replayed { view, .. } => self
                 .replays
                 .as_ref()

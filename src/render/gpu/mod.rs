@@ -34,6 +34,16 @@ pub enum GpuError {
     TooLarge { needed: u64, limit: u64 },
 }
 
+impl From<GpuError> for RenderError {
+    /// A bad input stays the reference's error; a device failure becomes [`RenderError::Device`].
+    fn from(e: GpuError) -> Self {
+        match e {
+            GpuError::Render(r) => r,
+            other => RenderError::Device(other.to_string()),
+        }
+    }
+}
+
 /// Which adapters [`GpuRenderer::new`] may take.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum AdapterChoice {
@@ -794,10 +804,27 @@ impl std::str::FromStr for DeviceRequest {
 }
 
 /// The rasterizer a command renders with: one API over both paths.
-#[derive(Clone)]
+#[derive(Clone, Default)]
 pub enum Rasterizer {
+    #[default]
     Cpu,
     Gpu(Arc<GpuRenderer>),
+}
+
+impl std::fmt::Debug for Rasterizer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.describe())
+    }
+}
+
+impl PartialEq for Rasterizer {
+    fn eq(&self, other: &Self) -> bool {
+        match (self, other) {
+            (Self::Cpu, Self::Cpu) => true,
+            (Self::Gpu(a), Self::Gpu(b)) => Arc::ptr_eq(a, b),
+            _ => false,
+        }
+    }
 }
 
 impl Rasterizer {
