@@ -28,7 +28,7 @@ pub(crate) struct ModelArgs {
     weights: Option<PathBuf>,
     /// Device: cpu (burn `flex`, the CPU rasterizer), wgpu (any wgpu adapter, lavapipe
     /// included) or auto (a hardware GPU when there is one, else the CPU). `embed` renders
-    /// and back-propagates its views there too.
+    /// and back-propagates its views there (its decoder runs on the CPU).
     #[arg(long, value_enum, default_value = "auto")]
     device: DeviceArg,
 }
@@ -145,7 +145,16 @@ pub(crate) struct EmbedArgs {
 }
 
 fn load_model(m: &ModelArgs, bits: usize, autodiff: bool) -> Result<WatermarkModel> {
-    let device = DeviceChoice::from(m.device).device();
+    load_model_on(m, bits, autodiff, DeviceChoice::from(m.device))
+}
+
+fn load_model_on(
+    m: &ModelArgs,
+    bits: usize,
+    autodiff: bool,
+    choice: DeviceChoice,
+) -> Result<WatermarkModel> {
+    let device = choice.device();
     let device = if autodiff { device.autodiff() } else { device };
     Ok(WatermarkModel::resolve(
         m.weights.as_deref(),
@@ -194,7 +203,9 @@ pub(crate) fn embed_cmd(a: &EmbedArgs) -> Result<()> {
             a.holdout_every
         );
     }
-    let model = load_model(&a.model, a.bits, true)?;
+    // The splats go where --device says; the decoder stays on burn's CPU backend for now
+    // (the finetuning's losses and attacks run there), so images cross to the host each step.
+    let model = load_model_on(&a.model, a.bits, true, DeviceChoice::Flex)?;
     let rasterizer = crate::render::gpu::Rasterizer::open(a.model.device.into())?;
     eprintln!("rasterizer: {}", rasterizer.describe());
     let mut opts: EmbedOptions = match &a.config {
