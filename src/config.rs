@@ -11,13 +11,13 @@ use serde::{Deserialize, Serialize};
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum DevicePolicy {
-    /// One worker per hardware GPU adapter (burn-wgpu); one CPU worker (burn `flex`) when there
-    /// is none.
+    /// One worker per hardware GPU adapter (the GPU rasterizer on its own wgpu device); one
+    /// CPU worker when there is none.
     #[default]
     Auto,
     /// CPU workers only.
     Cpu,
-    /// burn-wgpu on the default adapter (Mesa's software Vulkan counts).
+    /// The GPU rasterizer on the best wgpu adapter (Mesa's software Vulkan counts).
     Wgpu,
 }
 

@@ -571,3 +571,69 @@ async fn the_master_key_is_not_rotated_beside_a_running_server() {
     assert!(store.verify_audit_chain().await.unwrap().ok);
     store.close().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_gpu_lost_mid_job_fails_the_attempt_and_the_retry_completes_on_the_gpu() {
+    use splatmark::render::gpu::{AdapterChoice, GpuRenderer, Rasterizer};
+    // A GPU worker (Mesa's lavapipe here: `bash scripts/setup.sh` installs it) whose device is
+    // lost at its first render.
+    let gpu = std::sync::Arc::new(
+        GpuRenderer::new(AdapterChoice::AllowSoftware)
+            .unwrap_or_else(|e| panic!("no wgpu adapter ({e}); run scripts/setup.sh")),
+    );
+    gpu.inject_device_loss(1);
+    let adapter = Rasterizer::Gpu(gpu.clone()).describe();
+    let dir = tempfile::tempdir().unwrap();
+    let cfg = config(dir.path());
+    let master = MasterKey::generate().to_hex();
+    let worker = splatmark::queue::WorkerSpec {
+        name: "gpu0-0".into(),
+        device: burn::tensor::Device::flex(),
+        rasterizer: Rasterizer::Gpu(gpu),
+    };
+    let t = TestApp::boot(dir, cfg, master, Some(vec![worker])).await;
+    let k = t.keys().await;
+    let (id, job_id) = t.small_object_job(&k.owner, 3).await;
+    let done = t
+        .wait_job_until(&k.owner, &job_id, Duration::from_secs(600), |j| {
+            j["state"] == "done" || j["state"] == "dead"
+        })
+        .await;
+    // The lost device failed the first attempt cleanly; the retry ran on the GPU and finished.
+    assert_eq!(done["state"], "done", "{done}");
+    assert_eq!(done["attempts"], 2, "{done}");
+    let audit: Value = t
+        .get(
+            &t.key(&["auditor"]).await,
+            &format!("/v1/audit?asset_id={id}&action=job.fail"),
+        )
+        .await
+        .json()
+        .await
+        .unwrap();
+    let fails = audit["items"].as_array().unwrap();
+    assert_eq!(fails.len(), 1, "{audit}");
+    assert!(
+        fails[0]["details"]["error"]
+            .as_str()
+            .unwrap()
+            .contains("device lost"),
+        "{audit}"
+    );
+    // The report and /metrics name the adapter that ran the job.
+    let marked = done["result_asset_id"].as_str().unwrap();
+    let meta: Value = t
+        .get(&k.owner, &format!("/v1/assets/{marked}"))
+        .await
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(meta["report"]["rasterizer"], adapter, "{meta}");
+    let m = t.metrics().await;
+    assert!(
+        m.contains(&format!(
+            "splatmark_worker_device{{worker=\"gpu0-0\",device=\"{adapter}\"}} 1"
+        )),
+        "{m}"
+    );
+}

@@ -113,6 +113,23 @@ pub async fn metrics(State(st): State<AppState>) -> ApiResult<Response> {
         "Configured workers.",
         &one(p.workers.load(Ordering::Relaxed) as u64),
     );
+    let devices: Vec<(String, f64)> = p
+        .devices
+        .iter()
+        .map(|(w, d)| {
+            let esc = |v: &str| v.replace('\\', "\\\\").replace('"', "\\\"");
+            (
+                format!("{{worker=\"{}\",device=\"{}\"}}", esc(w), esc(d)),
+                1.0,
+            )
+        })
+        .collect();
+    put(
+        "splatmark_worker_device",
+        "gauge",
+        "Each worker and the device its jobs render on (cpu, or the GPU adapter).",
+        &devices,
+    );
     put(
         "splatmark_workers_busy",
         "gauge",

@@ -8,57 +8,51 @@ pub mod worker;
 pub use spec::{JobOptions, JobSpec};
 pub use worker::{Pool, PoolStatus, WorkerSpec, available_bits, start, weights_path};
 
-use burn::tensor::{Device, DeviceKind};
+use std::sync::Arc;
+
+use burn::tensor::Device;
 
 use crate::config::{Config, DevicePolicy};
+use crate::render::gpu::{DeviceRequest, GpuRenderer, Rasterizer};
 
-/// The workers `cfg` asks for: one per hardware GPU adapter (burn-wgpu) under
-/// [`DevicePolicy::Auto`] when there is one, else CPU workers (burn `flex`); `cfg.workers`
-/// overrides the count.
+/// The workers `cfg` asks for: under [`DevicePolicy::Auto`], one per hardware GPU adapter
+/// (its own wgpu device renders and back-propagates the views) when there is one, else CPU
+/// workers; [`DevicePolicy::Wgpu`] takes the best wgpu adapter, Mesa's lavapipe included;
+/// `cfg.workers` overrides the count (workers beyond the adapters share them round-robin).
+/// The decoder runs on burn's CPU backend in every worker: the finetuning's losses and attacks
+/// run there.
 pub async fn plan_workers(cfg: &Config) -> Vec<WorkerSpec> {
-    let mut devices: Vec<(String, Device)> = match cfg.device {
+    let mut rasterizers: Vec<(String, Rasterizer)> = match cfg.device {
         DevicePolicy::Cpu => vec![],
-        DevicePolicy::Wgpu => vec![("wgpu".into(), Device::wgpu(DeviceKind::DefaultDevice))],
-        DevicePolicy::Auto => gpu_adapters().await,
+        DevicePolicy::Wgpu => match Rasterizer::open(DeviceRequest::Wgpu) {
+            Ok(r) => vec![("wgpu".into(), r)],
+            Err(e) => {
+                tracing::error!(error = %e, "device = wgpu, but no wgpu adapter: CPU workers");
+                vec![]
+            }
+        },
+        DevicePolicy::Auto => GpuRenderer::on_every_gpu()
+            .into_iter()
+            .enumerate()
+            .map(|(i, r)| {
+                let info = r.adapter();
+                tracing::info!(adapter = %info.name, backend = ?info.backend, "GPU adapter found");
+                (format!("gpu{i}"), Rasterizer::Gpu(Arc::new(r)))
+            })
+            .collect(),
     };
-    if devices.is_empty() {
-        devices.push(("cpu".into(), Device::flex()));
+    if rasterizers.is_empty() {
+        rasterizers.push(("cpu".into(), Rasterizer::Cpu));
     }
-    let n = cfg.workers.unwrap_or(devices.len());
+    let n = cfg.workers.unwrap_or(rasterizers.len());
     (0..n)
         .map(|i| {
-            let (kind, device) = devices[i % devices.len()].clone();
+            let (kind, rasterizer) = rasterizers[i % rasterizers.len()].clone();
             WorkerSpec {
                 name: format!("{kind}-{i}"),
-                device,
+                device: Device::flex(),
+                rasterizer,
             }
         })
         .collect()
-}
-
-/// Hardware GPU adapters (software rasterisers such as Mesa's lavapipe excluded: `flex` is
-/// faster on a CPU).
-async fn gpu_adapters() -> Vec<(String, Device)> {
-    let instance =
-        wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
-    let adapters = instance.enumerate_adapters(wgpu::Backends::PRIMARY).await;
-    let (mut discrete, mut integrated) = (0, 0);
-    let mut out = vec![];
-    for a in adapters {
-        let info = a.get_info();
-        let kind = match info.device_type {
-            wgpu::DeviceType::DiscreteGpu => {
-                discrete += 1;
-                DeviceKind::DiscreteGpu(discrete - 1)
-            }
-            wgpu::DeviceType::IntegratedGpu => {
-                integrated += 1;
-                DeviceKind::IntegratedGpu(integrated - 1)
-            }
-            _ => continue,
-        };
-        tracing::info!(adapter = %info.name, backend = ?info.backend, "GPU adapter found");
-        out.push((format!("gpu{}", out.len()), Device::wgpu(kind)));
-    }
-    out
 }

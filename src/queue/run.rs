@@ -100,7 +100,14 @@ pub fn execute(
     let e = embed(&g, &train, message, model, &spec.embed, progress).map_err(JobError::Embed)?;
     write_ply(&e.scene, &mut *out).map_err(|e| JobError::Write(e.to_string()))?;
     out.flush().map_err(|e| JobError::Write(e.to_string()))?;
-    let report = stored_report(&e.report).map_err(|e| JobError::Write(e.to_string()))?;
+    let mut report = stored_report(&e.report).map_err(|e| JobError::Write(e.to_string()))?;
+    if let Some(o) = report.as_object_mut() {
+        // Where the views were rendered: `cpu`, or the GPU adapter.
+        o.insert(
+            "rasterizer".into(),
+            spec.embed.finetune.rasterizer.describe().into(),
+        );
+    }
     Ok(JobOutput {
         gaussians: e.scene.len() as u64,
         sh_degree: e.scene.sh_degree,

@@ -20,21 +20,26 @@ use super::spec::JobSpec;
 use crate::config::Config;
 use crate::decoder::WatermarkModel;
 use crate::embed::pipeline::{EmbedError, Phase, Progress};
+use crate::render::gpu::Rasterizer;
 use crate::scene::Limits;
 use crate::store::{
     AssetKind, AuditEntry, BlobRef, Claimed, NewAsset, ProgressUpdate, Store, StoreError,
 };
 
-/// One worker: a name (in logs, the job row and the audit log) and the device of its networks.
+/// One worker: a name (in logs, the job row and the audit log), the device of its networks and
+/// the rasterizer that renders and back-propagates its jobs' views.
 #[derive(Clone, Debug)]
 pub struct WorkerSpec {
     pub name: String,
     pub device: Device,
+    pub rasterizer: Rasterizer,
 }
 
 /// Counters for `/metrics` and `/readyz`.
 #[derive(Debug, Default)]
 pub struct PoolStatus {
+    /// Each worker's name and the rasterizer it runs jobs on (`cpu`, or the adapter).
+    pub devices: Vec<(String, String)>,
     pub workers: AtomicUsize,
     pub alive: AtomicUsize,
     pub busy: AtomicUsize,
@@ -77,7 +82,13 @@ pub fn start(
     wake: Arc<Notify>,
     shutdown: watch::Receiver<bool>,
 ) -> Pool {
-    let status = Arc::new(PoolStatus::default());
+    let status = Arc::new(PoolStatus {
+        devices: workers
+            .iter()
+            .map(|w| (w.name.clone(), w.rasterizer.describe()))
+            .collect(),
+        ..PoolStatus::default()
+    });
     status.workers.store(workers.len(), Ordering::Relaxed);
     let ctx = Arc::new(Ctx {
         store,
@@ -114,7 +125,7 @@ async fn worker_loop(ctx: Arc<Ctx>, w: WorkerSpec) {
     let lease = Duration::from_secs(ctx.cfg.lease_seconds);
     let mut shutdown = ctx.shutdown.clone();
     let mut last_sweep: Option<Instant> = None;
-    tracing::info!(worker = %w.name, device = ?w.device, "worker started");
+    tracing::info!(worker = %w.name, device = ?w.device, rasterizer = %w.rasterizer.describe(), "worker started");
     while !*shutdown.borrow() {
         if last_sweep.is_none_or(|t| t.elapsed() >= lease / 2) {
             match ctx.store.requeue_expired().await {
@@ -195,10 +206,11 @@ async fn run_job(ctx: &Ctx, w: &WorkerSpec, c: Claimed) {
         Ok(None) => return fail(ctx, job.id, token, "the asset no longer exists").await,
         Err(e) => return fail(ctx, job.id, token, &e.to_string()).await,
     };
-    let spec = match prepared {
+    let mut spec = match prepared {
         Ok(s) => s,
         Err(e) => return fail(ctx, job.id, token, &e).await,
     };
+    spec.embed.finetune.rasterizer = w.rasterizer.clone();
     let (scene_path, cams_path, tmp) = match (|| {
         let s = ctx.store.blobs().path(&asset.sha256)?;
         let c = match &asset.cameras_sha256 {

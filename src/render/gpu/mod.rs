@@ -59,6 +59,8 @@ pub struct GpuRenderer {
     queue: wgpu::Queue,
     info: wgpu::AdapterInfo,
     pipes: Pipelines,
+    /// Renders or backward passes left to fail as on a lost device ([`Self::inject_device_loss`]).
+    faults: std::sync::atomic::AtomicUsize,
 }
 
 struct Pipelines {
@@ -217,6 +219,35 @@ impl GpuRenderer {
                     format!("found only {}", seen.join(", "))
                 })
             })?;
+        Self::on_adapter(&adapter)
+    }
+
+    /// One renderer on every hardware adapter (discrete and integrated GPUs; software
+    /// rasterisers left out), each on a device of its own; adapters that fail to open are
+    /// logged and skipped.
+    pub fn on_every_gpu() -> Vec<Self> {
+        let instance =
+            wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+        block_on(instance.enumerate_adapters(wgpu::Backends::all()))
+            .into_iter()
+            .filter(|a| {
+                matches!(
+                    a.get_info().device_type,
+                    wgpu::DeviceType::DiscreteGpu | wgpu::DeviceType::IntegratedGpu
+                )
+            })
+            .filter_map(|a| match Self::on_adapter(&a) {
+                Ok(r) => Some(r),
+                Err(e) => {
+                    tracing::warn!(adapter = %a.get_info().name, error = %e, "GPU adapter unusable");
+                    None
+                }
+            })
+            .collect()
+    }
+
+    /// A renderer on `adapter`.
+    pub fn on_adapter(adapter: &wgpu::Adapter) -> Result<Self, GpuError> {
         let info = adapter.get_info();
         let (device, queue) = block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("splatmark"),
@@ -234,6 +265,7 @@ impl GpuRenderer {
             queue,
             info,
             pipes,
+            faults: Default::default(),
         })
     }
 
@@ -280,6 +312,24 @@ impl GpuRenderer {
     /// The adapter this renderer runs on.
     pub fn adapter(&self) -> &wgpu::AdapterInfo {
         &self.info
+    }
+
+    /// Fault drill: the next `n` renders or backward passes fail with the error a lost device
+    /// gives ([`GpuError::Run`]), so that what a worker does then can be tested and rehearsed.
+    pub fn inject_device_loss(&self, n: usize) {
+        self.faults.store(n, std::sync::atomic::Ordering::SeqCst);
+    }
+
+    /// Consumes one injected fault, if any is left.
+    fn injected_fault(&self) -> Result<(), GpuError> {
+        use std::sync::atomic::Ordering;
+        match self
+            .faults
+            .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| n.checked_sub(1))
+        {
+            Ok(_) => Err(GpuError::Run("device lost (injected fault)".into())),
+            Err(_) => Ok(()),
+        }
     }
 
     fn storage(&self, label: &str, bytes: u64) -> Result<wgpu::Buffer, GpuError> {
@@ -395,6 +445,7 @@ impl GpuRenderer {
         opts: &RenderOptions,
     ) -> Result<GpuRendered, GpuError> {
         check_inputs(g, camera, opts)?;
+        self.injected_fault()?;
         let oom = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
         let invalid = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         let out = self.render_checked(g, camera, opts);
@@ -613,6 +664,7 @@ impl GpuRenderer {
             ))
             .into());
         }
+        self.injected_fault()?;
         let oom = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
         let invalid = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         let out = self.backward_checked(st, d_image);
