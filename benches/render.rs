@@ -139,7 +139,13 @@ fn main() {
             gpu,
         );
     }
-    let data = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/scenes");
+    // SPLATMARK_SCENES: the scenes folder when the binary runs away from its checkout
+    // (scripts/gpu-bench.sh on a GPU machine).
+    let data = std::env::var_os("SPLATMARK_SCENES")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| {
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/scenes")
+        });
     for (name, file) in [
         ("donut (real, SH0)", "donut/fused.ply"),
         ("plant (real, SH0)", "plant/plant.splat"),
