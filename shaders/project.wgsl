@@ -71,15 +71,17 @@ fn sh_color(base: u32, m: vec3<f32>) -> vec3<f32> {
     return max(col + vec3<f32>(0.5), vec3<f32>(0.0));
 }
 
-fn clamp_ratio(v: f32, z: f32, lim: f32) -> f32 {
+// The camera-space coordinate `v` the Jacobian uses, with v/z clamped to ±`lim` (INRIA's
+// frustum guard), and the side it was clamped at (±1; 0 when it was not).
+fn clamp_ratio(v: f32, z: f32, lim: f32) -> vec2<f32> {
     let r = v / z;
     if (r > lim) {
-        return lim * z;
+        return vec2<f32>(lim * z, 1.0);
     }
     if (r < -lim) {
-        return -lim * z;
+        return vec2<f32>(-lim * z, -1.0);
     }
-    return v;
+    return vec2<f32>(v, 0.0);
 }
 
 @compute @workgroup_size(256)
@@ -126,8 +128,8 @@ fn project(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroup
     let s22 = dot(m2, m2);
 
     // T = J W with the frustum guard.
-    let txc = clamp_ratio(tc.x, z, cam.lim_x);
-    let tyc = clamp_ratio(tc.y, z, cam.lim_y);
+    let txc = clamp_ratio(tc.x, z, cam.lim_x).x;
+    let tyc = clamp_ratio(tc.y, z, cam.lim_y).x;
     let j00 = cam.fx * inv_z;
     let j02 = -cam.fx * txc * inv_z * inv_z;
     let j11 = cam.fy * inv_z;
@@ -388,26 +390,12 @@ fn project_backward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
     }
 
     // Jacobian with the frustum guard, and which side (if any) clamped.
-    var txc = tc.x;
-    var sgx = 0.0;
-    let rx = tc.x / z;
-    if (rx > cam.lim_x) {
-        txc = cam.lim_x * z;
-        sgx = 1.0;
-    } else if (rx < -cam.lim_x) {
-        txc = -cam.lim_x * z;
-        sgx = -1.0;
-    }
-    var tyc = tc.y;
-    var sgy = 0.0;
-    let ry = tc.y / z;
-    if (ry > cam.lim_y) {
-        tyc = cam.lim_y * z;
-        sgy = 1.0;
-    } else if (ry < -cam.lim_y) {
-        tyc = -cam.lim_y * z;
-        sgy = -1.0;
-    }
+    let cx = clamp_ratio(tc.x, z, cam.lim_x);
+    let cy = clamp_ratio(tc.y, z, cam.lim_y);
+    let txc = cx.x;
+    let sgx = cx.y;
+    let tyc = cy.x;
+    let sgy = cy.y;
     let j00 = cam.fx * inv_z;
     let j02 = -cam.fx * txc * inv_z * inv_z;
     let j11 = cam.fy * inv_z;
