@@ -275,26 +275,41 @@ fn bad_input_is_the_references_typed_error() {
 }
 
 #[test]
-fn a_shared_scene_renders_as_on_the_cpu() {
-    let path = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../shared/data/scenes/donut/fused.ply");
-    if !path.is_file() {
-        eprintln!(
-            "SKIPPED: {} is missing (the shared data folder)",
-            path.display()
-        );
-        return;
-    }
-    let g = crate::scene::read_scene(&path, &crate::scene::Limits::default()).unwrap();
-    let orbit = crate::scene::orbit::OrbitOptions {
-        count: 3,
-        width: 128,
-        height: 128,
-        ..Default::default()
-    };
-    let cams = crate::scene::orbit::orbit_cameras(&g, &orbit).unwrap();
-    for cam in &cams {
-        assert_parity(&g, cam, &RenderOptions::default());
+fn the_shared_scenes_render_as_on_the_cpu() {
+    let dir = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/scenes");
+    // donut (SH 0, dense), plant (.splat, 114 k Gaussians), udon (SH 3, through its cameras).
+    for file in [
+        "donut/fused.ply",
+        "plant/plant.splat",
+        "udon/point_cloud.ply",
+    ] {
+        let path = dir.join(file);
+        if !path.is_file() {
+            eprintln!(
+                "SKIPPED: {} is missing (the shared data folder)",
+                path.display()
+            );
+            continue;
+        }
+        let g = crate::scene::read_scene(&path, &crate::scene::Limits::default()).unwrap();
+        let cams = if file.starts_with("udon") {
+            let cams = crate::scene::camera::read_cameras(&dir.join("udon/cameras.json")).unwrap();
+            crate::scene::camera::resize_all(cams, Some(160), None)
+                .into_iter()
+                .take(3)
+                .collect()
+        } else {
+            let orbit = crate::scene::orbit::OrbitOptions {
+                count: 3,
+                width: 128,
+                height: 128,
+                ..Default::default()
+            };
+            crate::scene::orbit::orbit_cameras(&g, &orbit).unwrap()
+        };
+        for cam in &cams {
+            assert_parity(&g, cam, &RenderOptions::default());
+        }
     }
 }
 
