@@ -10,13 +10,15 @@
 //! follow the reference's formulas in f32, so images agree to rounding (tested: ≤ 1/255 on
 //! ≥ 99.9 % of the pixels).
 
+mod backward;
+mod choice;
 mod sort;
 
-use std::sync::Arc;
+pub use choice::{DeviceRequest, Rasterizer, shared};
 
 use wgpu::util::DeviceExt;
 
-use super::{ALPHA_MIN, Gradients, MAX_IMAGE_EDGE, RenderError, RenderOptions, TILE, check_inputs};
+use super::{ALPHA_MIN, MAX_IMAGE_EDGE, RenderError, RenderOptions, TILE, check_inputs};
 use crate::scene::{Camera, Gaussians};
 
 /// Why the GPU path could not run.
@@ -637,150 +639,6 @@ impl GpuRenderer {
             },
         })
     }
-
-    /// Back-propagates `d_image` (∂L/∂pixel, row-major RGB) through the GPU render `fwd` of
-    /// `g` (the scene that was rendered): the CPU reference's [`super::backward`], with the
-    /// same [`Gradients`] — deterministic (no float atomics), equal to it up to rounding.
-    pub fn backward(
-        &self,
-        g: &Gaussians<f32>,
-        fwd: &GpuRendered,
-        d_image: &[[f32; 3]],
-    ) -> Result<Gradients<f32>, GpuError> {
-        let st = &fwd.state;
-        let px = fwd.width as usize * fwd.height as usize;
-        if d_image.len() != px {
-            return Err(RenderError::GradientSize {
-                got: d_image.len(),
-                expected: px,
-            }
-            .into());
-        }
-        if g.len() != st.n as usize || g.rest_len() != st.rest_len || g.sh_degree != st.sh_degree {
-            return Err(RenderError::BadScene(format!(
-                "the render was of {} Gaussians, the scene has {}",
-                st.n,
-                g.len()
-            ))
-            .into());
-        }
-        self.injected_fault()?;
-        let oom = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
-        let invalid = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let out = self.backward_checked(st, d_image);
-        let errors = [block_on(invalid.pop()), block_on(oom.pop())];
-        if let Some(e) = errors.into_iter().flatten().next() {
-            return Err(GpuError::Run(e.to_string()));
-        }
-        let (grads, aux) = out?;
-        let n = g.len();
-        let gs = 14 + st.rest_len;
-        let z3 = [0.0f32; 3];
-        let mut params = Gaussians {
-            means: vec![z3; n],
-            log_scales: vec![z3; n],
-            rotations: vec![[0.0; 4]; n],
-            opacity_logits: vec![0.0; n],
-            sh_dc: vec![z3; n],
-            sh_rest: vec![0.0; n * st.rest_len],
-            sh_degree: g.sh_degree,
-        };
-        let mut colors = vec![z3; n];
-        let mut blend_weights = vec![0.0; n];
-        let mut screen_xy = vec![[0.0; 2]; n];
-        for i in 0..n {
-            let p = &grads[i * gs..(i + 1) * gs];
-            params.means[i] = [p[0], p[1], p[2]];
-            params.log_scales[i] = [p[3], p[4], p[5]];
-            params.rotations[i] = [p[6], p[7], p[8], p[9]];
-            params.opacity_logits[i] = p[10];
-            params.sh_dc[i] = [p[11], p[12], p[13]];
-            params.sh_rest[i * st.rest_len..(i + 1) * st.rest_len].copy_from_slice(&p[14..]);
-            let a = &aux[i * 6..(i + 1) * 6];
-            colors[i] = [a[0], a[1], a[2]];
-            blend_weights[i] = a[3];
-            screen_xy[i] = [a[4], a[5]];
-        }
-        Ok(Gradients {
-            params,
-            colors,
-            blend_weights,
-            screen_xy,
-        })
-    }
-
-    /// The device work of [`Self::backward`]: parameter gradients and the auxiliary outputs,
-    /// read back.
-    fn backward_checked(
-        &self,
-        st: &GpuState,
-        d_image: &[[f32; 3]],
-    ) -> Result<(Vec<f32>, Vec<f32>), GpuError> {
-        let d_buf = self.storage("d image", d_image.len() as u64 * 12)?;
-        self.queue
-            .write_buffer(&d_buf, 0, bytemuck::cast_slice(d_image));
-        let slots = self.storage("entry slots", u64::from(st.total) * 40)?;
-        let n = u64::from(st.n);
-        let gs = 14 + st.rest_len as u64;
-        let grads = self.storage("gradients", n * gs * 4)?;
-        let aux = self.storage("aux", n * 24)?;
-        let mut encoder = self.device.create_command_encoder(&Default::default());
-        encoder.clear_buffer(&slots, 0, None);
-        if st.total > 0 {
-            let bg0 = bind(
-                &self.device,
-                &self.pipes.raster_backward,
-                0,
-                &[
-                    (0, &st.cam),
-                    (1, &st.splats),
-                    (2, &st.vals),
-                    (3, &st.owner),
-                    (4, &st.ranges),
-                    (5, &st.final_t),
-                    (6, &st.n_contrib),
-                    (7, &d_buf),
-                ],
-            );
-            let bg1 = bind(&self.device, &self.pipes.raster_backward, 1, &[(0, &slots)]);
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            pass.set_pipeline(&self.pipes.raster_backward);
-            pass.set_bind_group(0, &bg0, &[]);
-            pass.set_bind_group(1, &bg1, &[]);
-            pass.dispatch_workgroups(st.tiles.0, st.tiles.1, 1);
-        }
-        {
-            let bg = bind(
-                &self.device,
-                &self.pipes.project_backward,
-                0,
-                &[
-                    (0, &st.cam),
-                    (1, &st.params),
-                    (4, &st.offsets),
-                    (5, &slots),
-                    (6, &grads),
-                    (7, &aux),
-                ],
-            );
-            let (gx, gy) = grid(st.n.div_ceil(256));
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            pass.set_pipeline(&self.pipes.project_backward);
-            pass.set_bind_group(0, &bg, &[]);
-            pass.dispatch_workgroups(gx, gy, 1);
-        }
-        // Gradients and aux through one readback.
-        let (gbytes, abytes) = (n * gs * 4, n * 24);
-        let out = self.storage("out", gbytes + abytes)?;
-        if gbytes > 0 {
-            encoder.copy_buffer_to_buffer(&grads, 0, &out, 0, gbytes);
-            encoder.copy_buffer_to_buffer(&aux, 0, &out, gbytes, abytes);
-        }
-        let bytes = self.read(encoder, &out, gbytes + abytes)?;
-        let floats: &[f32] = bytemuck::cast_slice(&bytes);
-        let (g, a) = floats.split_at(gbytes as usize / 4);
-        Ok((g.to_vec(), a.to_vec()))
-    }
 }
 
 /// The `Camera` uniform of the kernels (see `shaders/project.wgsl`).
@@ -828,113 +686,6 @@ fn camera_uniform(
     ];
     bytes.extend_from_slice(words(&u));
     bytes
-}
-
-/// Which rasterizer a command asks for (`--device cpu|wgpu|auto`).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub enum DeviceRequest {
-    /// The CPU reference.
-    Cpu,
-    /// The GPU path on the best wgpu adapter, a software one (lavapipe) included.
-    Wgpu,
-    /// A hardware GPU when there is one, else the CPU reference (lavapipe is slower than the
-    /// CPU reference: it is for tests, not production).
-    #[default]
-    Auto,
-}
-
-impl std::str::FromStr for DeviceRequest {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "cpu" => Ok(Self::Cpu),
-            "wgpu" => Ok(Self::Wgpu),
-            "auto" => Ok(Self::Auto),
-            _ => Err(format!("unknown device {s:?}: expected cpu, wgpu or auto")),
-        }
-    }
-}
-
-/// The rasterizer a command renders with: one API over both paths.
-#[derive(Clone, Default)]
-pub enum Rasterizer {
-    #[default]
-    Cpu,
-    Gpu(Arc<GpuRenderer>),
-}
-
-impl std::fmt::Debug for Rasterizer {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(&self.describe())
-    }
-}
-
-impl PartialEq for Rasterizer {
-    fn eq(&self, other: &Self) -> bool {
-        match (self, other) {
-            (Self::Cpu, Self::Cpu) => true,
-            (Self::Gpu(a), Self::Gpu(b)) => Arc::ptr_eq(a, b),
-            _ => false,
-        }
-    }
-}
-
-impl Rasterizer {
-    /// The rasterizer `req` asks for; `Wgpu` without an adapter is an error, `Auto` falls back
-    /// to the CPU.
-    pub fn open(req: DeviceRequest) -> Result<Self, GpuError> {
-        match req {
-            DeviceRequest::Cpu => Ok(Self::Cpu),
-            DeviceRequest::Wgpu => shared(AdapterChoice::AllowSoftware)
-                .map(Self::Gpu)
-                .map_err(GpuError::NoAdapter),
-            DeviceRequest::Auto => Ok(shared(AdapterChoice::Hardware).map_or(Self::Cpu, Self::Gpu)),
-        }
-    }
-
-    /// "cpu", or the adapter's name and backend.
-    pub fn describe(&self) -> String {
-        match self {
-            Self::Cpu => "cpu".into(),
-            Self::Gpu(r) => format!("wgpu: {} ({:?})", r.info.name, r.info.backend),
-        }
-    }
-
-    /// The image of `g` through `camera`: (width, height, linear RGB, not clamped).
-    pub fn render_image(
-        &self,
-        g: &Gaussians<f32>,
-        camera: &Camera,
-        opts: &RenderOptions,
-    ) -> Result<(u32, u32, Vec<[f32; 3]>), GpuError> {
-        match self {
-            Self::Cpu => {
-                let r = super::render(g, camera, opts)?;
-                Ok((r.width, r.height, r.image))
-            }
-            Self::Gpu(gpu) => {
-                let r = gpu.render(g, camera, opts)?;
-                Ok((r.width, r.height, r.image))
-            }
-        }
-    }
-}
-
-/// A shared renderer, opened once per process (the tests' lavapipe device).
-pub fn shared(choice: AdapterChoice) -> Result<Arc<GpuRenderer>, String> {
-    use std::sync::OnceLock;
-    static HW: OnceLock<Result<Arc<GpuRenderer>, String>> = OnceLock::new();
-    static SW: OnceLock<Result<Arc<GpuRenderer>, String>> = OnceLock::new();
-    let cell = match choice {
-        AdapterChoice::Hardware => &HW,
-        AdapterChoice::AllowSoftware => &SW,
-    };
-    cell.get_or_init(|| {
-        GpuRenderer::new(choice)
-            .map(Arc::new)
-            .map_err(|e| e.to_string())
-    })
-    .clone()
 }
 
 #[cfg(test)]

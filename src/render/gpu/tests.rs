@@ -5,6 +5,7 @@
 use super::*;
 use crate::render::render;
 use glam::{Mat3, Vec3};
+use std::sync::Arc;
 
 fn gpu() -> Arc<GpuRenderer> {
     shared(AdapterChoice::AllowSoftware).unwrap_or_else(|e| {

@@ -1,0 +1,153 @@
+//! The GPU path's backward pass: ∂L/∂image through `shaders/backward.wgsl` (each tile's entries
+//! back to front, a fixed-order sum per entry) and `shaders/project.wgsl`'s `project_backward`
+//! (per Gaussian, through the projection) to the CPU reference's [`Gradients`].
+
+use super::{GpuError, GpuRendered, GpuRenderer, GpuState, bind, block_on, grid};
+use crate::render::{Gradients, RenderError};
+use crate::scene::Gaussians;
+
+impl GpuRenderer {
+    /// Back-propagates `d_image` (∂L/∂pixel, row-major RGB) through the GPU render `fwd` of
+    /// `g` (the scene that was rendered): the CPU reference's [`super::backward`], with the
+    /// same [`Gradients`] — deterministic (no float atomics), equal to it up to rounding.
+    pub fn backward(
+        &self,
+        g: &Gaussians<f32>,
+        fwd: &GpuRendered,
+        d_image: &[[f32; 3]],
+    ) -> Result<Gradients<f32>, GpuError> {
+        let st = &fwd.state;
+        let px = fwd.width as usize * fwd.height as usize;
+        if d_image.len() != px {
+            return Err(RenderError::GradientSize {
+                got: d_image.len(),
+                expected: px,
+            }
+            .into());
+        }
+        if g.len() != st.n as usize || g.rest_len() != st.rest_len || g.sh_degree != st.sh_degree {
+            return Err(RenderError::BadScene(format!(
+                "the render was of {} Gaussians, the scene has {}",
+                st.n,
+                g.len()
+            ))
+            .into());
+        }
+        self.injected_fault()?;
+        let oom = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
+        let invalid = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let out = self.backward_checked(st, d_image);
+        let errors = [block_on(invalid.pop()), block_on(oom.pop())];
+        if let Some(e) = errors.into_iter().flatten().next() {
+            return Err(GpuError::Run(e.to_string()));
+        }
+        let (grads, aux) = out?;
+        let n = g.len();
+        let gs = 14 + st.rest_len;
+        let z3 = [0.0f32; 3];
+        let mut params = Gaussians {
+            means: vec![z3; n],
+            log_scales: vec![z3; n],
+            rotations: vec![[0.0; 4]; n],
+            opacity_logits: vec![0.0; n],
+            sh_dc: vec![z3; n],
+            sh_rest: vec![0.0; n * st.rest_len],
+            sh_degree: g.sh_degree,
+        };
+        let mut colors = vec![z3; n];
+        let mut blend_weights = vec![0.0; n];
+        let mut screen_xy = vec![[0.0; 2]; n];
+        for i in 0..n {
+            let p = &grads[i * gs..(i + 1) * gs];
+            params.means[i] = [p[0], p[1], p[2]];
+            params.log_scales[i] = [p[3], p[4], p[5]];
+            params.rotations[i] = [p[6], p[7], p[8], p[9]];
+            params.opacity_logits[i] = p[10];
+            params.sh_dc[i] = [p[11], p[12], p[13]];
+            params.sh_rest[i * st.rest_len..(i + 1) * st.rest_len].copy_from_slice(&p[14..]);
+            let a = &aux[i * 6..(i + 1) * 6];
+            colors[i] = [a[0], a[1], a[2]];
+            blend_weights[i] = a[3];
+            screen_xy[i] = [a[4], a[5]];
+        }
+        Ok(Gradients {
+            params,
+            colors,
+            blend_weights,
+            screen_xy,
+        })
+    }
+
+    /// The device work of [`Self::backward`]: parameter gradients and the auxiliary outputs,
+    /// read back.
+    fn backward_checked(
+        &self,
+        st: &GpuState,
+        d_image: &[[f32; 3]],
+    ) -> Result<(Vec<f32>, Vec<f32>), GpuError> {
+        let d_buf = self.storage("d image", d_image.len() as u64 * 12)?;
+        self.queue
+            .write_buffer(&d_buf, 0, bytemuck::cast_slice(d_image));
+        let slots = self.storage("entry slots", u64::from(st.total) * 40)?;
+        let n = u64::from(st.n);
+        let gs = 14 + st.rest_len as u64;
+        let grads = self.storage("gradients", n * gs * 4)?;
+        let aux = self.storage("aux", n * 24)?;
+        let mut encoder = self.device.create_command_encoder(&Default::default());
+        encoder.clear_buffer(&slots, 0, None);
+        if st.total > 0 {
+            let bg0 = bind(
+                &self.device,
+                &self.pipes.raster_backward,
+                0,
+                &[
+                    (0, &st.cam),
+                    (1, &st.splats),
+                    (2, &st.vals),
+                    (3, &st.owner),
+                    (4, &st.ranges),
+                    (5, &st.final_t),
+                    (6, &st.n_contrib),
+                    (7, &d_buf),
+                ],
+            );
+            let bg1 = bind(&self.device, &self.pipes.raster_backward, 1, &[(0, &slots)]);
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&self.pipes.raster_backward);
+            pass.set_bind_group(0, &bg0, &[]);
+            pass.set_bind_group(1, &bg1, &[]);
+            pass.dispatch_workgroups(st.tiles.0, st.tiles.1, 1);
+        }
+        {
+            let bg = bind(
+                &self.device,
+                &self.pipes.project_backward,
+                0,
+                &[
+                    (0, &st.cam),
+                    (1, &st.params),
+                    (4, &st.offsets),
+                    (5, &slots),
+                    (6, &grads),
+                    (7, &aux),
+                ],
+            );
+            let (gx, gy) = grid(st.n.div_ceil(256));
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&self.pipes.project_backward);
+            pass.set_bind_group(0, &bg, &[]);
+            pass.dispatch_workgroups(gx, gy, 1);
+        }
+        // Gradients and aux through one readback.
+        let (gbytes, abytes) = (n * gs * 4, n * 24);
+        let out = self.storage("out", gbytes + abytes)?;
+        if gbytes > 0 {
+            encoder.copy_buffer_to_buffer(&grads, 0, &out, 0, gbytes);
+            encoder.copy_buffer_to_buffer(&aux, 0, &out, gbytes, abytes);
+        }
+        let bytes = self.read(encoder, &out, gbytes + abytes)?;
+        let floats: &[f32] = bytemuck::cast_slice(&bytes);
+        let (g, a) = floats.split_at(gbytes as usize / 4);
+        Ok((g.to_vec(), a.to_vec()))
+    }
+}
