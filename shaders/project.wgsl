@@ -35,40 +35,20 @@ fn rest(base: u32, k: u32) -> vec3<f32> {
     return vec3<f32>(params[o], params[o + 1u], params[o + 2u]);
 }
 
-fn sh_color(base: u32, m: vec3<f32>) -> vec3<f32> {
+// Unit direction camera centre → `m` (xyz) and the distance (w), as the reference's `view_dir`.
+fn view_dir(m: vec3<f32>) -> vec4<f32> {
+    let v = m - cam.center.xyz;
+    let len = max(sqrt(v.x * v.x + v.y * v.y + v.z * v.z), 1e-12);
+    return vec4<f32>(v / len, len);
+}
+
+// Gaussian `base`'s SH colour along unit direction `d`, + 0.5, before the clamp at 0.
+fn sh_unclamped(base: u32, d: vec3<f32>) -> vec3<f32> {
     var col = C0 * vec3<f32>(params[base + 11u], params[base + 12u], params[base + 13u]);
-    let deg = cam.sh_degree;
-    if (deg > 0u) {
-        let v = m - cam.center.xyz;
-        let len = max(sqrt(v.x * v.x + v.y * v.y + v.z * v.z), 1e-12);
-        let d = v / len;
-        let x = d.x;
-        let y = d.y;
-        let z = d.z;
-        col += (-C1 * y) * rest(base, 1u);
-        col += (C1 * z) * rest(base, 2u);
-        col += (-C1 * x) * rest(base, 3u);
-        if (deg > 1u) {
-            let xx = x * x;
-            let yy = y * y;
-            let zz = z * z;
-            col += (C2_0 * x * y) * rest(base, 4u);
-            col += (C2_1 * y * z) * rest(base, 5u);
-            col += (C2_2 * (2.0 * zz - xx - yy)) * rest(base, 6u);
-            col += (C2_3 * x * z) * rest(base, 7u);
-            col += (C2_4 * (xx - yy)) * rest(base, 8u);
-            if (deg > 2u) {
-                col += (C3_0 * y * (3.0 * xx - yy)) * rest(base, 9u);
-                col += (C3_1 * x * y * z) * rest(base, 10u);
-                col += (C3_2 * y * (4.0 * zz - xx - yy)) * rest(base, 11u);
-                col += (C3_3 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy)) * rest(base, 12u);
-                col += (C3_4 * x * (4.0 * zz - xx - yy)) * rest(base, 13u);
-                col += (C3_5 * z * (xx - yy)) * rest(base, 14u);
-                col += (C3_6 * x * (xx - 3.0 * yy)) * rest(base, 15u);
-            }
-        }
+    for (var k = 1u; k < basis_len(cam.sh_degree); k = k + 1u) {
+        col += basis(k, d) * rest(base, k);
     }
-    return max(col + vec3<f32>(0.5), vec3<f32>(0.0));
+    return col + vec3<f32>(0.5);
 }
 
 // The camera-space coordinate `v` the Jacobian uses, with v/z clamped to ±`lim` (INRIA's
@@ -167,7 +147,7 @@ fn project(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroup
         let c = base + cam.stride - 3u;
         color = vec3<f32>(params[c], params[c + 1u], params[c + 2u]);
     } else {
-        color = sh_color(base, m);
+        color = max(sh_unclamped(base, view_dir(m).xyz), vec3<f32>(0.0));
     }
     // o·e^(−σ) ≥ 1/255 ⇔ σ ≤ ln(255·o), with the reference's margin.
     let thr = log(o / cam.alpha_min) + 0.01;
@@ -334,16 +314,12 @@ fn project_backward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
         dcol = vec3<f32>(0.0);
     }
     let deg = cam.sh_degree;
-    var v = m - cam.center.xyz;
-    let len = max(sqrt(v.x * v.x + v.y * v.y + v.z * v.z), 1e-12);
-    let d = v / len;
+    let vd = view_dir(m);
+    let d = vd.xyz;
+    let len = vd.w;
     if (cam.override_colors == 0u) {
-        var col = C0 * vec3<f32>(params[base + 11u], params[base + 12u], params[base + 13u]);
-        for (var k = 1u; k < basis_len(deg); k = k + 1u) {
-            col += basis(k, d) * rest(base, k);
-        }
-        col += vec3<f32>(0.5);
-        dcol = select(dcol, vec3<f32>(0.0), col < vec3<f32>(0.0));
+        // A channel clamped at 0 passes no gradient.
+        dcol = select(dcol, vec3<f32>(0.0), sh_unclamped(base, d) < vec3<f32>(0.0));
     }
     grads[out + 11u] = C0 * dcol.x;
     grads[out + 12u] = C0 * dcol.y;
