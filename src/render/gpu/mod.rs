@@ -18,7 +18,7 @@ pub use choice::{DeviceRequest, Rasterizer, shared};
 
 use wgpu::util::DeviceExt;
 
-use super::{ALPHA_MIN, MAX_IMAGE_EDGE, RenderError, RenderOptions, TILE, check_inputs};
+use super::{ALPHA_MIN, RenderError, RenderOptions, TILE, check_inputs};
 use crate::scene::{Camera, Gaussians};
 
 /// Why the GPU path could not run.
@@ -467,7 +467,6 @@ impl GpuRenderer {
         let n = u32::try_from(g.len())
             .map_err(|_| RenderError::BadScene("more than 2³² Gaussians".into()))?;
         let (w, h) = (camera.width, camera.height);
-        debug_assert!(w <= MAX_IMAGE_EDGE && h <= MAX_IMAGE_EDGE);
         let overrides = opts.colors.as_deref();
         let sh_degree = match overrides {
             Some(_) => 0,

@@ -273,22 +273,11 @@ fn run_record_path(
 
 /// Writes a finished run atomically (a crash leaves the old file or none).
 fn save_run(path: &std::path::Path, r: &PaperRun) -> Result<(), BenchError> {
-    let err = |e: std::io::Error| BenchError::Input {
+    let json = serde_json::to_string_pretty(r).expect("a run serialises");
+    crate::decoder::artifact::write_atomic(path, json.as_bytes()).map_err(|e| BenchError::Input {
         path: path.to_path_buf(),
         message: e.to_string(),
-    };
-    let dir = path.parent().expect("a record lies in a folder");
-    std::fs::create_dir_all(dir).map_err(err)?;
-    let mut tmp = tempfile::NamedTempFile::new_in(dir).map_err(err)?;
-    std::io::Write::write_all(
-        &mut tmp,
-        serde_json::to_string_pretty(r)
-            .expect("a run serialises")
-            .as_bytes(),
-    )
-    .map_err(err)?;
-    tmp.persist(path).map_err(|e| err(e.error))?;
-    Ok(())
+    })
 }
 
 /// Runs the protocol; `log` gets a line per phase. Each finished embedding and its evaluation
