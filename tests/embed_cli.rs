@@ -358,3 +358,45 @@ fn a_partial_config_file_sets_what_it_names_and_keeps_the_rest() {
     assert!(o["finetune"]["lr"]["opacity"].as_f64().unwrap() > 0.0);
     assert_eq!(o["reference"], false);
 }
+
+#[test]
+fn embed_on_wgpu_renders_and_decodes_on_the_gpu_and_marks_as_the_cpu_does() {
+    // `--device wgpu` on Mesa's lavapipe (`bash scripts/setup.sh`): the views are rendered and
+    // decoded on one wgpu device; the steps follow the CPU's up to rounding.
+    let dir = tempfile::tempdir().unwrap();
+    let input = scene(dir.path());
+    let run = |device: &str| {
+        let out = dir.path().join(format!("marked-{device}.ply"));
+        let v = ok_json(
+            &bin()
+                .arg("embed")
+                .arg(&input)
+                .args(VIEWS)
+                .args(["--message", "c0ffee42", "--steps", "2", "--device", device])
+                .arg("--out")
+                .arg(&out)
+                .output()
+                .unwrap(),
+        );
+        assert_eq!(
+            read_scene(&out, &Limits::default()).unwrap().len() as u64,
+            v["output_gaussians"].as_u64().unwrap()
+        );
+        v
+    };
+    let (cpu, gpu) = (run("cpu"), run("wgpu"));
+    assert_eq!(cpu["rasterizer"], "cpu");
+    assert!(
+        gpu["rasterizer"].as_str().unwrap().starts_with("wgpu: "),
+        "{}",
+        gpu["rasterizer"]
+    );
+    assert_eq!(cpu["carriers"], gpu["carriers"]);
+    for key in ["l_wm", "psnr"] {
+        let (a, b) = (
+            cpu["last_step"][key].as_f64().unwrap(),
+            gpu["last_step"][key].as_f64().unwrap(),
+        );
+        assert!((a - b).abs() <= 0.05 * a.abs(), "{key}: cpu {a}, wgpu {b}");
+    }
+}

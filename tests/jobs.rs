@@ -586,10 +586,13 @@ async fn a_gpu_lost_mid_job_fails_the_attempt_and_the_retry_completes_on_the_gpu
     let dir = tempfile::tempdir().unwrap();
     let cfg = config(dir.path());
     let master = MasterKey::generate().to_hex();
+    // As `plan_workers` makes a GPU worker: its decoder on burn's wgpu runtime, on the
+    // rasterizer's own device.
+    let rasterizer = Rasterizer::Gpu(gpu);
     let worker = splatmark::queue::WorkerSpec {
         name: "gpu0-0".into(),
-        device: burn::tensor::Device::flex(),
-        rasterizer: Rasterizer::Gpu(gpu),
+        device: rasterizer.burn_device().unwrap(),
+        rasterizer,
     };
     let t = TestApp::boot(dir, cfg, master, Some(vec![worker])).await;
     let k = t.keys().await;

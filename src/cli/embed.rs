@@ -28,7 +28,8 @@ pub(crate) struct ModelArgs {
     weights: Option<PathBuf>,
     /// Device: cpu (burn `flex`, the CPU rasterizer), wgpu (any wgpu adapter, lavapipe
     /// included) or auto (a hardware GPU when there is one, else the CPU). `embed` renders
-    /// and back-propagates its views there (its decoder runs on the CPU).
+    /// and back-propagates its views there, and runs its decoder, image losses and attacks on
+    /// the same device.
     #[arg(long, value_enum, default_value = "auto")]
     device: DeviceArg,
 }
@@ -203,11 +204,15 @@ pub(crate) fn embed_cmd(a: &EmbedArgs) -> Result<()> {
             a.holdout_every
         );
     }
-    // The splats go where --device says; the decoder stays on burn's CPU backend for now
-    // (the finetuning's losses and attacks run there), so images cross to the host each step.
-    let model = load_model_on(&a.model, a.bits, true, DeviceChoice::Flex)?;
+    // The splats go where --device says, and the decoder, the image losses and the attacks
+    // with them (on a GPU: burn's wgpu runtime on the rasterizer's own device).
     let rasterizer = crate::render::gpu::Rasterizer::open(a.model.device.into())?;
     eprintln!("rasterizer: {}", rasterizer.describe());
+    let model = WatermarkModel::resolve(
+        a.model.weights.as_deref(),
+        a.bits,
+        &rasterizer.burn_device()?.autodiff(),
+    )?;
     let mut opts: EmbedOptions = match &a.config {
         Some(p) => {
             let bytes = std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?;
@@ -289,6 +294,8 @@ pub(crate) fn embed_cmd(a: &EmbedArgs) -> Result<()> {
     report["scene"] = serde_json::json!(a.scene);
     report["output"] = serde_json::json!(a.out);
     report["held_out_views"] = serde_json::json!(held.len());
+    // Where the views were rendered and decoded: `cpu`, or the GPU adapter (as a job's report).
+    report["rasterizer"] = serde_json::json!(opts.finetune.rasterizer.describe());
     if let Some(p) = &a.report {
         write_atomic(p, |f| {
             serde_json::to_writer_pretty(&mut *f, &report)?;

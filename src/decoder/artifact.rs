@@ -181,12 +181,8 @@ pub fn encoder_residual(
     let small = super::dwt::ll_band(image, levels).div_scalar(f as f64);
     let r = encoder.residual(small, message);
     let [_, _, sh, sw] = r.dims();
-    let up = burn::tensor::module::interpolate(
-        r,
-        burn::tensor::ops::InterpolateOptions::new(burn::tensor::ops::InterpolateMode::Bilinear)
-            .with_align_corners(false)
-            .with_output_size([sh * f, sw * f]),
-    );
+    // Bilinear, half-pixel centres, as gathers (back-propagates on the GPU too).
+    let up = crate::attack::diff::resize(r, [sh * f, sw * f]);
     if (sh * f, sw * f) == (h, w) {
         up
     } else {
@@ -487,6 +483,28 @@ impl WatermarkModel {
     /// Message length.
     pub fn bits(&self) -> usize {
         self.sidecar.bits
+    }
+
+    /// The device the decoder's weights live on (without its autodiff setting): tensors fed to
+    /// the model are made there.
+    pub fn device(&self) -> Device {
+        use burn::module::Module;
+        self.decoder
+            .devices()
+            .into_iter()
+            .next()
+            .unwrap_or_else(Device::flex)
+    }
+
+    /// The same model with its networks on `device` (e.g. a GPU worker's burn device); the
+    /// sidecar, reference and projection are host data and stay as they are.
+    pub fn to_device(self, device: &Device) -> Self {
+        use burn::module::Module;
+        Self {
+            decoder: self.decoder.to_device(device),
+            encoder: self.encoder.map(|e| e.to_device(device)),
+            ..self
+        }
     }
 
     /// Builds the model from the bytes of its three files; `origin` names them in errors.

@@ -163,7 +163,7 @@ fn render_rgb8(
 
 /// `model`'s pooled features of each image, in order.
 fn features_of(model: &WatermarkModel, images: &[image::RgbImage]) -> Vec<Vec<f32>> {
-    let device = burn::tensor::Device::flex();
+    let device = model.device();
     images
         .iter()
         .flat_map(|img| model.features(rgb8_tensor(img, &device)))
@@ -196,7 +196,7 @@ pub fn decoder_gain(
 /// [`decoder_gain`] over the 8-bit renders of the views.
 fn gain_of_renders(renders: &[image::RgbImage], model: &WatermarkModel) -> Vec<f64> {
     use rayon::prelude::*;
-    let device = burn::tensor::Device::flex().autodiff();
+    let device = model.device().autodiff();
     let f = model.decoder.feature_count();
     let levels = model.decoder.dwt_levels();
     let mut gain = vec![0.0f64; f * f];
@@ -362,7 +362,7 @@ fn nuisance_samples(
         };
         copies.push(a.apply(original).map_err(|e| invalid(e.to_string()))?);
     }
-    let device = burn::tensor::Device::flex();
+    let device = model.device();
     let mut out = Vec::with_capacity(cfg.nuisance);
     for _ in 0..cfg.nuisance {
         let k = rng.range_int(0, cams.len() as u64 - 1) as usize;

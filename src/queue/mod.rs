@@ -19,8 +19,9 @@ use crate::render::gpu::{DeviceRequest, GpuRenderer, Rasterizer};
 /// (its own wgpu device renders and back-propagates the views) when there is one, else CPU
 /// workers; [`DevicePolicy::Wgpu`] takes the best wgpu adapter, Mesa's lavapipe included;
 /// `cfg.workers` overrides the count (workers beyond the adapters share them round-robin).
-/// The decoder runs on burn's CPU backend in every worker: the finetuning's losses and attacks
-/// run there.
+/// A GPU worker's networks (decoder, image losses, attacks) run on burn's wgpu runtime on the
+/// same device as its rasterizer ([`Rasterizer::burn_device`]); a CPU worker's on burn's CPU
+/// backend.
 pub async fn plan_workers(cfg: &Config) -> Vec<WorkerSpec> {
     let mut rasterizers: Vec<(String, Rasterizer)> = match cfg.device {
         DevicePolicy::Cpu => vec![],
@@ -48,9 +49,13 @@ pub async fn plan_workers(cfg: &Config) -> Vec<WorkerSpec> {
     (0..n)
         .map(|i| {
             let (kind, rasterizer) = rasterizers[i % rasterizers.len()].clone();
+            let device = rasterizer.burn_device().unwrap_or_else(|e| {
+                tracing::error!(error = %e, "burn cannot use the GPU's device: the decoder runs on the CPU");
+                Device::flex()
+            });
             WorkerSpec {
                 name: format!("{kind}-{i}"),
-                device: Device::flex(),
+                device,
                 rasterizer,
             }
         })

@@ -239,7 +239,7 @@ pub fn evaluate_scene(
             expected: model.bits(),
         });
     }
-    let device = Device::flex();
+    let device = model.device();
     let orig = render_views(original, cams, opts)?;
     let mark = render_views(marked, cams, opts)?;
     let n = cams.len() as f64;

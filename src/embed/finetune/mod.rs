@@ -268,7 +268,8 @@ pub fn finetune(
         });
     }
     let render_opts = &cfg.render_options();
-    let device = Device::flex().autodiff();
+    // The decoder's device (burn's CPU backend, or the GPU the views are rendered on).
+    let device = model.device().autodiff();
     let l = message.len();
     let bits = Tensor::<2>::from_data(
         TensorData::new(

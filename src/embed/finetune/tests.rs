@@ -539,20 +539,32 @@ fn the_gpu_rasterizer_finetunes_as_the_cpu_reference_does() {
             },
         ),
     ] {
-        let run = |rasterizer: crate::render::gpu::Rasterizer| {
+        let run = |rasterizer: crate::render::gpu::Rasterizer, m: &WatermarkModel| {
             let cams: Vec<_> = views.iter().map(|v| v.camera.clone()).collect();
             let views = target_views(&g, &cams, &RenderOptions::default(), &rasterizer).unwrap();
             let cfg = FinetuneConfig {
                 rasterizer,
                 ..base.clone()
             };
-            finetune(&g, &mk, &views, &m, &msg, &cfg, |_| {
-                ControlFlow::Continue(())
-            })
+            finetune(
+                &g,
+                &mk,
+                &views,
+                m,
+                &msg,
+                &cfg,
+                |_| ControlFlow::Continue(()),
+            )
             .unwrap()
         };
-        let cpu = run(crate::render::gpu::Rasterizer::Cpu);
-        let on_gpu = run(crate::render::gpu::Rasterizer::Gpu(gpu.clone()));
+        let gpu_rasterizer = crate::render::gpu::Rasterizer::Gpu(gpu.clone());
+        let cpu = run(crate::render::gpu::Rasterizer::Cpu, &m);
+        let on_gpu = run(gpu_rasterizer.clone(), &m);
+        // And with the decoder, the losses and the attacks on the GPU's own device too.
+        let on_device = m
+            .clone()
+            .to_device(&gpu_rasterizer.burn_device().unwrap().autodiff());
+        let all_gpu = run(gpu_rasterizer, &on_device);
         let moved: f32 = cpu
             .gaussians
             .sh_dc
@@ -566,27 +578,120 @@ fn the_gpu_rasterizer_finetunes_as_the_cpu_reference_does() {
                 .map(|(p, q)| (0..3).map(|c| (p[c] - q[c]).abs()).fold(0.0, f32::max))
                 .fold(0.0, f32::max)
         };
-        let dc_gap = gap(&cpu.gaussians.sh_dc, &on_gpu.gaussians.sh_dc);
-        let mean_gap = gap(&cpu.gaussians.means, &on_gpu.gaussians.means);
-        assert_eq!(cpu.log.len(), on_gpu.log.len());
-        for (a, b) in cpu.log.iter().zip(&on_gpu.log) {
+        for (path, on_gpu) in [
+            ("GPU rasterizer", &on_gpu),
+            ("everything on the GPU", &all_gpu),
+        ] {
+            let dc_gap = gap(&cpu.gaussians.sh_dc, &on_gpu.gaussians.sh_dc);
+            let mean_gap = gap(&cpu.gaussians.means, &on_gpu.gaussians.means);
+            assert_eq!(cpu.log.len(), on_gpu.log.len());
+            for (a, b) in cpu.log.iter().zip(&on_gpu.log) {
+                assert!(
+                    (a.l_wm - b.l_wm).abs() <= 1e-4 * a.l_wm.abs()
+                        && (a.psnr == b.psnr || (a.psnr - b.psnr).abs() < 0.01),
+                    "{name}, {path}, step {}: l_wm {} / {}, PSNR {} / {}",
+                    a.step,
+                    a.l_wm,
+                    b.l_wm,
+                    a.psnr,
+                    b.psnr
+                );
+            }
+            assert!(moved > 0.0, "{name}: nothing moved");
+            // Rounding apart, the same trajectory (measured: gaps of 2e-7 after four steps).
             assert!(
-                (a.l_wm - b.l_wm).abs() <= 1e-4 * a.l_wm.abs()
-                    && (a.psnr == b.psnr || (a.psnr - b.psnr).abs() < 0.01),
-                "{name}, step {}: l_wm {} / {}, PSNR {} / {}",
-                a.step,
-                a.l_wm,
-                b.l_wm,
-                a.psnr,
-                b.psnr
+                dc_gap < 1e-3 * moved,
+                "{name}, {path}: colours moved {moved}, differ by {dc_gap}"
+            );
+            assert!(
+                mean_gap < 1e-6,
+                "{name}, {path}: means differ by {mean_gap}"
             );
         }
-        assert!(moved > 0.0, "{name}: nothing moved");
-        // Rounding apart, the same trajectory (measured: gaps of 2e-7 after four steps).
+    }
+}
+
+#[test]
+fn the_shipped_decoder_reads_every_eot_attack_alike_on_the_gpu_device() {
+    // What a GPU worker runs each step on burn's wgpu runtime (the rasterizer's own device):
+    // 8-bit rounding, the attack, the shipped decoder and the low-band term, forward and
+    // backward to ∂L/∂image — against burn's CPU backend.
+    let gpu = crate::render::gpu::shared(crate::render::gpu::AdapterChoice::AllowSoftware)
+        .unwrap_or_else(|e| {
+            panic!("no wgpu adapter ({e}); `bash scripts/setup.sh` installs lavapipe")
+        });
+    let on_gpu = crate::render::gpu::Rasterizer::Gpu(gpu)
+        .burn_device()
+        .unwrap()
+        .autodiff();
+    let on_cpu = Device::flex().autodiff();
+    let cpu_model = WatermarkModel::shipped(32, &on_cpu).unwrap();
+    assert_eq!(cpu_model.device(), Device::flex());
+    let gpu_model = cpu_model.clone().to_device(&on_gpu);
+    assert_ne!(gpu_model.device(), Device::flex());
+    let (h, w) = (64, 80);
+    let image: Vec<f32> = (0..3 * h * w)
+        .map(|k| {
+            let (c, y, x) = (k / (h * w), (k / w) % h, k % w);
+            0.5 + 0.3 * ((x as f32 * 0.21 + c as f32).sin() * (y as f32 * 0.13).cos())
+        })
+        .collect();
+    let target: Vec<f32> = image.iter().map(|v| v * 0.98 + 0.01).collect();
+    let weights: Vec<f32> = (0..32)
+        .map(|i| if i % 3 == 0 { 1.0 } else { -0.5 })
+        .collect();
+    let families = [
+        AttackFamily::Noise { sigma: (0.1, 0.1) },
+        AttackFamily::Blur {
+            sigma: (0.8, 0.8),
+            kernel: 3,
+        },
+        AttackFamily::Rotate { max_degrees: 30.0 },
+        AttackFamily::Perspective { max_degrees: 20.0 },
+        AttackFamily::Scale {
+            factor: (0.75, 0.75),
+        },
+        AttackFamily::Crop { keep: (0.4, 0.4) },
+        AttackFamily::Window { keep: (0.3, 0.5) },
+        AttackFamily::Jpeg { quality: (50, 50) },
+        AttackFamily::Brightness { factor: (0.9, 0.9) },
+        AttackFamily::Contrast { factor: (1.1, 1.1) },
+    ];
+    let mut rng = EotRng::new(3);
+    for family in families {
+        let attack = family.sample(&mut rng).expect("not the identity");
+        let run = |m: &WatermarkModel, device: &Device| {
+            let x = Tensor::<4>::from_data(TensorData::new(image.clone(), [1, 3, h, w]), device)
+                .require_grad();
+            let t = Tensor::<4>::from_data(TensorData::new(target.clone(), [1, 3, h, w]), device);
+            let (_, z, low) =
+                decode_views(m, std::slice::from_ref(&x), &[t], Some(&attack), 2).unwrap();
+            let wz = Tensor::<2>::from_data(TensorData::new(weights.clone(), [1, 32]), device);
+            let grads = z[0].clone().mul(wz).sum().add(low).backward();
+            let z: Vec<f32> = z[0].clone().detach().try_into_vec_as().unwrap();
+            let d: Vec<f32> = x.grad(&grads).unwrap().try_into_vec_as().unwrap();
+            (z, d)
+        };
+        let (z_cpu, d_cpu) = run(&cpu_model, &on_cpu);
+        let (z_gpu, d_gpu) = run(&gpu_model, &on_gpu);
+        let rel = |a: &[f32], b: &[f32]| {
+            let (num, den) = a.iter().zip(b).fold((0.0f64, 0.0f64), |(n, d), (p, q)| {
+                let (p, q) = (f64::from(*p), f64::from(*q));
+                (n + (p - q) * (p - q), d + p * p)
+            });
+            (num / den.max(1e-30)).sqrt()
+        };
+        let (ez, ed) = (rel(&z_cpu, &z_gpu), rel(&d_cpu, &d_gpu));
+        eprintln!("{}: logits {ez:.2e}, ∂L/∂image {ed:.2e}", attack.kind());
         assert!(
-            dc_gap < 1e-3 * moved,
-            "{name}: colours moved {moved}, differ by {dc_gap}"
+            d_cpu.iter().any(|v| *v != 0.0),
+            "{}: the loss reaches the image",
+            attack.kind()
         );
-        assert!(mean_gap < 1e-6, "{name}: means differ by {mean_gap}");
+        assert!(
+            ez < 1e-4 && ed < 1e-4,
+            "{}: logits differ by {ez:.2e}, gradients by {ed:.2e} (relative L2)",
+            attack.kind()
+        );
     }
 }

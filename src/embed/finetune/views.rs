@@ -2,7 +2,6 @@
 //! finetuning moves colours only, the default — each view's [`Replay`], recorded the first time
 //! the view is drawn, within [`REPLAY_BUDGET_BYTES`].
 
-use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
 
 use super::FinetuneError;
@@ -74,7 +73,7 @@ pub(crate) fn views_logits(
             Ok(render::to_rgb8(r.width, r.height, &r.image))
         })
         .collect::<Result<Vec<_>, RenderError>>()?;
-    Ok(decode_images(model, &images, &Device::flex().autodiff()).logits)
+    Ok(decode_images(model, &images, &model.device().autodiff()).logits)
 }
 
 impl ViewsCheck {

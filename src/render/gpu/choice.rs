@@ -77,6 +77,17 @@ impl Rasterizer {
         }
     }
 
+    /// The burn device of the networks beside this rasterizer: burn's CPU backend (`flex`)
+    /// beside the CPU reference, the GPU's own wgpu device beside the GPU path
+    /// ([`GpuRenderer::burn_device`]) — the decoder, the image losses and the attacks then run
+    /// where the views are rendered.
+    pub fn burn_device(&self) -> Result<burn::tensor::Device, GpuError> {
+        match self {
+            Self::Cpu => Ok(burn::tensor::Device::flex()),
+            Self::Gpu(r) => r.burn_device(),
+        }
+    }
+
     /// The image of `g` through `camera`: (width, height, linear RGB, not clamped).
     pub fn render_image(
         &self,

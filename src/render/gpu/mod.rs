@@ -57,9 +57,14 @@ pub enum AdapterChoice {
 
 /// A wgpu device with the rasterizer's pipelines.
 pub struct GpuRenderer {
+    instance: wgpu::Instance,
+    adapter: wgpu::Adapter,
     device: wgpu::Device,
     queue: wgpu::Queue,
     info: wgpu::AdapterInfo,
+    /// burn's handle on this same wgpu device, registered with burn's wgpu runtime on first use
+    /// ([`Self::burn_device`]).
+    burn: std::sync::OnceLock<Result<burn::tensor::Device, String>>,
     pipes: Pipelines,
     /// Renders or backward passes left to fail as on a lost device ([`Self::inject_device_loss`]).
     faults: std::sync::atomic::AtomicUsize,
@@ -221,7 +226,7 @@ impl GpuRenderer {
                     format!("found only {}", seen.join(", "))
                 })
             })?;
-        Self::on_adapter(&adapter)
+        Self::on_adapter(&instance, &adapter)
     }
 
     /// One renderer on every hardware adapter (discrete and integrated GPUs; software
@@ -238,7 +243,7 @@ impl GpuRenderer {
                     wgpu::DeviceType::DiscreteGpu | wgpu::DeviceType::IntegratedGpu
                 )
             })
-            .filter_map(|a| match Self::on_adapter(&a) {
+            .filter_map(|a| match Self::on_adapter(&instance, &a) {
                 Ok(r) => Some(r),
                 Err(e) => {
                     tracing::warn!(adapter = %a.get_info().name, error = %e, "GPU adapter unusable");
@@ -248,14 +253,25 @@ impl GpuRenderer {
             .collect()
     }
 
-    /// A renderer on `adapter`.
-    pub fn on_adapter(adapter: &wgpu::Adapter) -> Result<Self, GpuError> {
+    /// A renderer on `adapter` (of `instance`).
+    pub fn on_adapter(
+        instance: &wgpu::Instance,
+        adapter: &wgpu::Adapter,
+    ) -> Result<Self, GpuError> {
         let info = adapter.get_info();
-        let (device, queue) = block_on(adapter.request_device(&wgpu::DeviceDescriptor {
-            label: Some("splatmark"),
-            required_limits: adapter.limits(),
-            ..Default::default()
-        }))
+        // Every feature the adapter has, as burn's wgpu runtime asks for its own devices: the
+        // decoder's kernels run on this device too ([`Self::burn_device`]) and burn picks its
+        // code paths (64-bit integers, subgroups, f16) from the adapter's features.
+        let (device, queue) = block_on(
+            adapter.request_device(&wgpu::DeviceDescriptor {
+                label: Some("splatmark"),
+                required_features: adapter
+                    .features()
+                    .difference(wgpu::Features::MAPPABLE_PRIMARY_BUFFERS),
+                required_limits: adapter.limits(),
+                ..Default::default()
+            }),
+        )
         .map_err(|e| GpuError::Device(e.to_string()))?;
         let invalid = device.push_error_scope(wgpu::ErrorFilter::Validation);
         let pipes = Self::pipelines(&device);
@@ -263,12 +279,37 @@ impl GpuRenderer {
             return Err(GpuError::Device(format!("the kernels do not build: {e}")));
         }
         Ok(Self {
+            instance: instance.clone(),
+            adapter: adapter.clone(),
             device,
             queue,
             info,
             pipes,
+            burn: Default::default(),
             faults: Default::default(),
         })
+    }
+
+    /// burn's device on this renderer's wgpu device and queue (registered with burn's wgpu
+    /// runtime once; every call returns a clone of that one device): the decoder, the image
+    /// losses and the attacks of a finetuning then run on the GPU that renders its views.
+    pub fn burn_device(&self) -> Result<burn::tensor::Device, GpuError> {
+        self.burn
+            .get_or_init(|| {
+                let setup = burn::tensor::wgpu::WgpuSetup {
+                    instance: self.instance.clone(),
+                    adapter: self.adapter.clone(),
+                    device: self.device.clone(),
+                    queue: self.queue.clone(),
+                    backend: self.info.backend,
+                };
+                burn::tensor::Device::wgpu_options()
+                    .setup(setup)
+                    .init()
+                    .map_err(|e| e.to_string())
+            })
+            .clone()
+            .map_err(GpuError::Device)
     }
 
     fn pipelines(device: &wgpu::Device) -> Pipelines {
