@@ -264,3 +264,50 @@ fn convert_writes_an_inria_ply_that_reads_back_exactly() {
         assert_eq!(v["format"], "ply");
     }
 }
+
+#[test]
+fn convert_writes_the_format_its_output_names() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("object.ply");
+    let g = splatmark::scene::synthetic::object_scene(600, 1, 9);
+    splatmark::scene::write_ply(&g, std::fs::File::create(&input).unwrap()).unwrap();
+    for (name, format, degree) in [
+        ("o.compressed.ply", "compressed_ply", 1),
+        ("o.splat", "splat", 0),
+        ("o.spz", "spz", 1),
+        ("o.ply", "ply", 1),
+    ] {
+        let out = dir.path().join(name);
+        let o = bin()
+            .arg("convert")
+            .arg(&input)
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .unwrap();
+        assert!(
+            o.status.success(),
+            "{name}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        let v = json(&bin().arg("info").arg(&out).output().unwrap());
+        assert_eq!(v["format"], format, "{name}: {v}");
+        assert_eq!(v["count"], 600, "{name}: {v}");
+        assert_eq!(v["sh_degree"], degree, "{name}: {v}");
+    }
+    let bad = dir.path().join("o.ksplat");
+    let o = bin()
+        .arg("convert")
+        .arg(&input)
+        .arg("--out")
+        .arg(&bad)
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains(".ply, .compressed.ply, .splat or .spz"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert!(!bad.exists());
+}

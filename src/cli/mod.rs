@@ -11,7 +11,7 @@ use crate::scene::bounds::{full_bounds, robust_bounds};
 use crate::scene::camera::{read_cameras, resize_all};
 use crate::scene::format::read_scene_bytes_detect;
 use crate::scene::orbit::{OrbitOptions, UpAxis, orbit_cameras};
-use crate::scene::{Camera, Gaussians, Limits, write_ply};
+use crate::scene::{Camera, Gaussians, Limits};
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
 
@@ -44,12 +44,13 @@ enum Command {
     },
     /// Render a scene through its cameras or orbit views to PNG files.
     Render(RenderArgs),
-    /// Convert any supported scene file to an INRIA binary PLY (opens in INRIA's viewer,
-    /// SuperSplat and Spark).
+    /// Convert a scene between formats: the output's extension picks the format (.ply: INRIA
+    /// binary PLY, lossless; .compressed.ply, .splat, .spz: the viewers' quantised formats).
     Convert {
         /// Scene file (.ply, compressed .ply, .splat, .spz).
         scene: PathBuf,
-        /// Output .ply file (written atomically: a temporary file renamed into place).
+        /// Output file, .ply / .compressed.ply / .splat / .spz (written atomically: a
+        /// temporary file renamed into place).
         #[arg(long)]
         out: PathBuf,
         #[command(flatten)]
@@ -647,6 +648,12 @@ fn decode_cmd(a: &DecodeArgs) -> Result<()> {
 }
 
 fn convert(path: &Path, out: &Path, limits: &LimitArgs) -> Result<()> {
+    let Some(to) = crate::scene::Format::from_path(out) else {
+        bail!(
+            "{}: the output's extension must be .ply, .compressed.ply, .splat or .spz",
+            out.display()
+        );
+    };
     let (format, g) = load(path, limits)?;
     let dir = out
         .parent()
@@ -654,12 +661,12 @@ fn convert(path: &Path, out: &Path, limits: &LimitArgs) -> Result<()> {
         .unwrap_or(Path::new("."));
     let mut tmp = tempfile::NamedTempFile::new_in(dir)
         .with_context(|| format!("cannot create a file in {}", dir.display()))?;
-    write_ply(&g, std::io::BufWriter::new(tmp.as_file_mut()))?;
+    crate::scene::write_scene(&g, to, std::io::BufWriter::new(tmp.as_file_mut()))?;
     tmp.as_file().sync_all()?;
     tmp.persist(out)
         .with_context(|| format!("cannot write {}", out.display()))?;
     eprintln!(
-        "{} ({format}, {} Gaussians, SH {}) → {}",
+        "{} ({format}, {} Gaussians, SH {}) → {} ({to})",
         path.display(),
         g.len(),
         g.sh_degree,

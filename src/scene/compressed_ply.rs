@@ -22,7 +22,7 @@
 
 use crate::scene::format::{GaussianBuilder, Limits, RawGaussian};
 use crate::scene::ply::{Header, ScalarType, for_each_row, parse_header, rest_properties};
-use crate::scene::{Gaussians, SceneError};
+use crate::scene::{Gaussians, SceneError, sigmoid};
 
 /// Gaussians per chunk.
 pub const CHUNK_SIZE: usize = 256;
@@ -314,151 +314,158 @@ pub fn read_with_header(
     Ok(builder.finish())
 }
 
+/// The compressed PLY bytes of `g`, as `splat-transform`'s `CompressedChunk.pack` and
+/// `writeCompressedPly` write them, without their Morton sort (the Gaussians keep their order,
+/// so attribution records still name them), always with chunk colour bounds. Lossy: positions
+/// and scales at 11/10/11 bits and colours at 8 bits within each chunk's bounds, rotations at
+/// 3 × 10 bits, opacity at 8 bits, higher SH at 8 bits in [−4, 4].
+pub fn encode(g: &Gaussians) -> Vec<u8> {
+    let n = g.len();
+    let nchunks = n.div_ceil(CHUNK_SIZE);
+    let rest_len = g.rest_len();
+    let mut h = String::from("ply\nformat binary_little_endian 1.0\ncomment splatmark\n");
+    h += &format!("element chunk {nchunks}\n");
+    for p in CHUNK_REQUIRED.iter().chain(CHUNK_COLOR.iter()) {
+        h += &format!("property float {p}\n");
+    }
+    h += &format!("element vertex {n}\n");
+    for p in PACKED {
+        h += &format!("property uint {p}\n");
+    }
+    if rest_len > 0 {
+        h += &format!("element sh {n}\n");
+        for j in 0..rest_len {
+            h += &format!("property uchar f_rest_{j}\n");
+        }
+    }
+    h += "end_header\n";
+
+    let pack_unorm = |v: f64, bits: u32| -> u32 {
+        let t = ((1u32 << bits) - 1) as f64;
+        (v * t + 0.5).floor().clamp(0.0, t) as u32
+    };
+    let normalize = |x: f64, min: f64, max: f64| {
+        if x <= min {
+            0.0
+        } else if x >= max {
+            1.0
+        } else if max - min < 0.00001 {
+            0.0
+        } else {
+            (x - min) / (max - min)
+        }
+    };
+    let mut chunk_data: Vec<f32> = Vec::new();
+    let mut words: Vec<u32> = Vec::new();
+    for ch in 0..nchunks {
+        let idx: Vec<usize> = (0..CHUNK_SIZE)
+            .map(|j| (ch * CHUNK_SIZE + j).min(n - 1))
+            .collect();
+        let col = |i: usize, c: usize| g.sh_dc[i][c] as f64 * SH_C0_F64 + 0.5;
+        let minmax = |f: &dyn Fn(usize) -> f64| {
+            idx.iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &i| {
+                    (lo.min(f(i)), hi.max(f(i)))
+                })
+        };
+        let mut b = [(0.0, 0.0); 9];
+        for a in 0..3 {
+            b[a] = minmax(&|i| g.means[i][a] as f64);
+            b[3 + a] = minmax(&|i| g.log_scales[i][a] as f64);
+            b[6 + a] = minmax(&|i| col(i, a));
+        }
+        // Stored as f32, so decode with the f32 bounds.
+        let b: Vec<(f64, f64)> = b
+            .iter()
+            .map(|&(lo, hi)| (lo as f32 as f64, hi as f32 as f64))
+            .collect();
+        for k in [0, 1, 2] {
+            chunk_data.push(b[k].0 as f32);
+        }
+        for k in [0, 1, 2] {
+            chunk_data.push(b[k].1 as f32);
+        }
+        for k in [3, 4, 5] {
+            chunk_data.push(b[k].0 as f32);
+        }
+        for k in [3, 4, 5] {
+            chunk_data.push(b[k].1 as f32);
+        }
+        for k in [6, 7, 8] {
+            chunk_data.push(b[k].0 as f32);
+        }
+        for k in [6, 7, 8] {
+            chunk_data.push(b[k].1 as f32);
+        }
+        for &i in idx.iter().take(n - ch * CHUNK_SIZE) {
+            let p111011 = |v: [f64; 3]| {
+                (pack_unorm(v[0], 11) << 21) | (pack_unorm(v[1], 10) << 11) | pack_unorm(v[2], 11)
+            };
+            let nz = |a: usize, v: f64| normalize(v, b[a].0, b[a].1);
+            words.push(p111011([
+                nz(0, g.means[i][0] as f64),
+                nz(1, g.means[i][1] as f64),
+                nz(2, g.means[i][2] as f64),
+            ]));
+            // Rotation: largest |component| index, made positive, three 10-bit others.
+            let q = g.rotations[i].map(|x| x as f64);
+            let largest = (0..4).fold(
+                0,
+                |best, k| if q[k].abs() > q[best].abs() { k } else { best },
+            );
+            let sign = if q[largest] < 0.0 { -1.0 } else { 1.0 };
+            let mut word = largest as u32;
+            for (k, &qk) in q.iter().enumerate() {
+                if k != largest {
+                    word = (word << 10)
+                        | pack_unorm(qk * sign * std::f64::consts::SQRT_2 * 0.5 + 0.5, 10);
+                }
+            }
+            words.push(word);
+            words.push(p111011([
+                nz(3, g.log_scales[i][0] as f64),
+                nz(4, g.log_scales[i][1] as f64),
+                nz(5, g.log_scales[i][2] as f64),
+            ]));
+            words.push(
+                (pack_unorm(nz(6, col(i, 0)), 8) << 24)
+                    | (pack_unorm(nz(7, col(i, 1)), 8) << 16)
+                    | (pack_unorm(nz(8, col(i, 2)), 8) << 8)
+                    | pack_unorm(sigmoid(g.opacity_logits[i]) as f64, 8),
+            );
+        }
+    }
+    let mut out = h.into_bytes();
+    chunk_data
+        .iter()
+        .for_each(|v| out.extend_from_slice(&v.to_le_bytes()));
+    words
+        .iter()
+        .for_each(|v| out.extend_from_slice(&v.to_le_bytes()));
+    let per_channel = rest_len / 3;
+    for i in 0..n {
+        for j in 0..rest_len {
+            // File index j = c*per_channel + k.
+            let (c, k) = (j / per_channel, j % per_channel);
+            let nv = g.rest_of(i)[k * 3 + c] as f64 / 8.0 + 0.5;
+            out.push((nv * 256.0).trunc().clamp(0.0, 255.0) as u8);
+        }
+    }
+    out
+}
+
+/// Writes `g` (validated first) as a compressed PLY ([`encode`]).
+pub fn write<W: std::io::Write>(g: &Gaussians, mut w: W) -> Result<(), SceneError> {
+    g.validate()?;
+    w.write_all(&encode(g)).map_err(SceneError::IoPlain)?;
+    w.flush().map_err(SceneError::IoPlain)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::scene::format::read_scene_bytes;
     use crate::scene::ply::tests::synthetic;
-    use crate::scene::sigmoid;
-
-    /// Test-only encoder following `splat-transform`'s `CompressedChunk.pack` and
-    /// `writeCompressedPly` (without the Morton sort), always with chunk colour bounds.
-    fn encode(g: &Gaussians) -> Vec<u8> {
-        let n = g.len();
-        let nchunks = n.div_ceil(CHUNK_SIZE);
-        let rest_len = g.rest_len();
-        let mut h = String::from("ply\nformat binary_little_endian 1.0\ncomment test encoder\n");
-        h += &format!("element chunk {nchunks}\n");
-        for p in CHUNK_REQUIRED.iter().chain(CHUNK_COLOR.iter()) {
-            h += &format!("property float {p}\n");
-        }
-        h += &format!("element vertex {n}\n");
-        for p in PACKED {
-            h += &format!("property uint {p}\n");
-        }
-        if rest_len > 0 {
-            h += &format!("element sh {n}\n");
-            for j in 0..rest_len {
-                h += &format!("property uchar f_rest_{j}\n");
-            }
-        }
-        h += "end_header\n";
-
-        let pack_unorm = |v: f64, bits: u32| -> u32 {
-            let t = ((1u32 << bits) - 1) as f64;
-            (v * t + 0.5).floor().clamp(0.0, t) as u32
-        };
-        let normalize = |x: f64, min: f64, max: f64| {
-            if x <= min {
-                0.0
-            } else if x >= max {
-                1.0
-            } else if max - min < 0.00001 {
-                0.0
-            } else {
-                (x - min) / (max - min)
-            }
-        };
-        let mut chunk_data: Vec<f32> = Vec::new();
-        let mut words: Vec<u32> = Vec::new();
-        for ch in 0..nchunks {
-            let idx: Vec<usize> = (0..CHUNK_SIZE)
-                .map(|j| (ch * CHUNK_SIZE + j).min(n - 1))
-                .collect();
-            let col = |i: usize, c: usize| g.sh_dc[i][c] as f64 * SH_C0_F64 + 0.5;
-            let minmax = |f: &dyn Fn(usize) -> f64| {
-                idx.iter()
-                    .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &i| {
-                        (lo.min(f(i)), hi.max(f(i)))
-                    })
-            };
-            let mut b = [(0.0, 0.0); 9];
-            for a in 0..3 {
-                b[a] = minmax(&|i| g.means[i][a] as f64);
-                b[3 + a] = minmax(&|i| g.log_scales[i][a] as f64);
-                b[6 + a] = minmax(&|i| col(i, a));
-            }
-            // Stored as f32, so decode with the f32 bounds.
-            let b: Vec<(f64, f64)> = b
-                .iter()
-                .map(|&(lo, hi)| (lo as f32 as f64, hi as f32 as f64))
-                .collect();
-            for k in [0, 1, 2] {
-                chunk_data.push(b[k].0 as f32);
-            }
-            for k in [0, 1, 2] {
-                chunk_data.push(b[k].1 as f32);
-            }
-            for k in [3, 4, 5] {
-                chunk_data.push(b[k].0 as f32);
-            }
-            for k in [3, 4, 5] {
-                chunk_data.push(b[k].1 as f32);
-            }
-            for k in [6, 7, 8] {
-                chunk_data.push(b[k].0 as f32);
-            }
-            for k in [6, 7, 8] {
-                chunk_data.push(b[k].1 as f32);
-            }
-            for &i in idx.iter().take(n - ch * CHUNK_SIZE) {
-                let p111011 = |v: [f64; 3]| {
-                    (pack_unorm(v[0], 11) << 21)
-                        | (pack_unorm(v[1], 10) << 11)
-                        | pack_unorm(v[2], 11)
-                };
-                let nz = |a: usize, v: f64| normalize(v, b[a].0, b[a].1);
-                words.push(p111011([
-                    nz(0, g.means[i][0] as f64),
-                    nz(1, g.means[i][1] as f64),
-                    nz(2, g.means[i][2] as f64),
-                ]));
-                // Rotation: largest |component| index, made positive, three 10-bit others.
-                let q = g.rotations[i].map(|x| x as f64);
-                let largest = (0..4).fold(
-                    0,
-                    |best, k| if q[k].abs() > q[best].abs() { k } else { best },
-                );
-                let sign = if q[largest] < 0.0 { -1.0 } else { 1.0 };
-                let mut word = largest as u32;
-                for (k, &qk) in q.iter().enumerate() {
-                    if k != largest {
-                        word = (word << 10)
-                            | pack_unorm(qk * sign * std::f64::consts::SQRT_2 * 0.5 + 0.5, 10);
-                    }
-                }
-                words.push(word);
-                words.push(p111011([
-                    nz(3, g.log_scales[i][0] as f64),
-                    nz(4, g.log_scales[i][1] as f64),
-                    nz(5, g.log_scales[i][2] as f64),
-                ]));
-                words.push(
-                    (pack_unorm(nz(6, col(i, 0)), 8) << 24)
-                        | (pack_unorm(nz(7, col(i, 1)), 8) << 16)
-                        | (pack_unorm(nz(8, col(i, 2)), 8) << 8)
-                        | pack_unorm(sigmoid(g.opacity_logits[i]) as f64, 8),
-                );
-            }
-        }
-        let mut out = h.into_bytes();
-        chunk_data
-            .iter()
-            .for_each(|v| out.extend_from_slice(&v.to_le_bytes()));
-        words
-            .iter()
-            .for_each(|v| out.extend_from_slice(&v.to_le_bytes()));
-        let per_channel = rest_len / 3;
-        for i in 0..n {
-            for j in 0..rest_len {
-                // File index j = c*per_channel + k.
-                let (c, k) = (j / per_channel, j % per_channel);
-                let nv = g.rest_of(i)[k * 3 + c] as f64 / 8.0 + 0.5;
-                out.push((nv * 256.0).trunc().clamp(0.0, 255.0) as u8);
-            }
-        }
-        out
-    }
 
     fn read(bytes: &[u8]) -> Result<Gaussians, SceneError> {
         read_scene_bytes(bytes, None, &Limits::default())

@@ -10,7 +10,8 @@
 //! | antimatter15 `.splat` | [`splat`](crate::scene::splat) | `.splat` extension, size a multiple of 32 (no magic) |
 //! | Niantic `.spz` | [`spz`](crate::scene::spz) | gzip (`1f 8b`), zstd (`28 b5 2f fd`) or `NGSP` magic |
 //!
-//! One writer exists, [`write_ply`]: INRIA binary little-endian PLY.
+//! Every format is also written ([`write_scene`]): INRIA binary little-endian PLY losslessly
+//! ([`write_ply`]), the other three with their own quantisation.
 //!
 //! Every reader checks sizes against the file and the [`Limits`] before it allocates per-Gaussian
 //! storage, uses checked arithmetic on header-declared sizes, and returns a typed [`SceneError`]
@@ -79,6 +80,20 @@ impl Format {
             Format::Splat => "splat",
             Format::Spz => "spz",
         }
+    }
+
+    /// The format a file name asks for by its extension (case-insensitive): `.compressed.ply`,
+    /// `.ply`, `.splat`, `.spz`; `None` for anything else.
+    pub fn from_path(path: &Path) -> Option<Format> {
+        let name = path.file_name()?.to_str()?.to_ascii_lowercase();
+        [
+            Format::CompressedPly,
+            Format::Ply,
+            Format::Splat,
+            Format::Spz,
+        ]
+        .into_iter()
+        .find(|f| name.ends_with(&format!(".{}", f.extension())))
     }
 }
 
@@ -229,6 +244,19 @@ pub fn read_as(bytes: &[u8], format: Format, limits: &Limits) -> Result<Gaussian
     };
     debug_assert!(g.validate().is_ok());
     Ok(g)
+}
+
+/// Writes `g` (validated first) in `format`: [`write_ply`] (lossless), or one of the
+/// quantised formats viewers load ([`compressed_ply::encode`](crate::scene::compressed_ply::encode),
+/// [`splat::encode`](crate::scene::splat::encode), [`spz::encode`](crate::scene::spz::encode):
+/// each documents what it rounds).
+pub fn write_scene<W: Write>(g: &Gaussians, format: Format, writer: W) -> Result<(), SceneError> {
+    match format {
+        Format::Ply => crate::scene::ply::write(g, writer),
+        Format::CompressedPly => crate::scene::compressed_ply::write(g, writer),
+        Format::Splat => crate::scene::splat::write(g, writer),
+        Format::Spz => crate::scene::spz::write(g, writer),
+    }
 }
 
 /// Writes `g` as an INRIA binary little-endian PLY that INRIA's loader, SuperSplat and Spark open
@@ -646,5 +674,71 @@ element vertex 0\nproperty uint packed_position\nend_header\n";
                 raw[o + 27]
             );
         }
+    }
+}
+
+#[cfg(test)]
+mod writer_tests {
+    use super::*;
+    use crate::scene::ply::tests::synthetic;
+
+    #[test]
+    fn every_format_is_written_and_reads_back_within_its_quantisation() {
+        let g = synthetic(700, 3, 41);
+        for format in Format::ALL {
+            let mut bytes = Vec::new();
+            write_scene(&g, format, &mut bytes).unwrap();
+            let back = read_scene_bytes(&bytes, Some(format.extension()), &Limits::default())
+                .unwrap_or_else(|e| panic!("{format}: {e}"));
+            assert_eq!(
+                detect_format(&bytes, Some(format.extension())).unwrap(),
+                format
+            );
+            assert_eq!(back.len(), g.len(), "{format}");
+            // .splat has no view-dependent colour; the others keep the degree.
+            let degree = if format == Format::Splat { 0 } else { 3 };
+            assert_eq!(back.sh_degree, degree, "{format}");
+            let worst = |a: &[[f32; 3]], b: &[[f32; 3]]| {
+                a.iter()
+                    .zip(b)
+                    .flat_map(|(p, q)| (0..3).map(move |c| (p[c] - q[c]).abs()))
+                    .fold(0.0f32, f32::max)
+            };
+            let (pos, dc) = (worst(&back.means, &g.means), worst(&back.sh_dc, &g.sh_dc));
+            let (pos_tol, dc_tol) = match format {
+                Format::Ply | Format::Splat => {
+                    (0.0, if format == Format::Ply { 0.0 } else { 0.01 })
+                }
+                // 11/10/11 bits across a 256-Gaussian chunk's extent; colour at 8 bits there.
+                Format::CompressedPly => (0.01, 0.02),
+                // 1/4096 of a unit; colour 1/(0.15·255) in DC.
+                Format::Spz => (1.0 / 8192.0 + 1e-6, 0.014),
+            };
+            assert!(pos <= pos_tol, "{format}: positions off by {pos}");
+            assert!(dc <= dc_tol, "{format}: colours off by {dc}");
+        }
+    }
+
+    #[test]
+    fn the_output_format_follows_the_file_name() {
+        for (name, f) in [
+            ("a.ply", Some(Format::Ply)),
+            ("b.compressed.ply", Some(Format::CompressedPly)),
+            ("C.SPLAT", Some(Format::Splat)),
+            ("dir.ply/d.spz", Some(Format::Spz)),
+            ("e.ksplat", None),
+            ("ply", None),
+        ] {
+            assert_eq!(Format::from_path(Path::new(name)), f, "{name}");
+        }
+    }
+
+    #[test]
+    fn spz_refuses_positions_it_cannot_hold() {
+        let mut g = synthetic(3, 0, 1);
+        g.means[1] = [0.0, 5000.0, 0.0];
+        let mut out = Vec::new();
+        let e = write_scene(&g, Format::Spz, &mut out).unwrap_err();
+        assert!(e.to_string().contains("Gaussian 1"), "{e}");
     }
 }

@@ -19,5 +19,5 @@ pub mod synthetic;
 
 pub use camera::Camera;
 pub use error::SceneError;
-pub use format::{Format, Limits, read_scene, read_scene_bytes, write_ply};
+pub use format::{Format, Limits, read_scene, read_scene_bytes, write_ply, write_scene};
 pub use gaussians::{Gaussians, SH_C0, logit, normalize_quat, rest_len_for, sh_coeffs, sigmoid};

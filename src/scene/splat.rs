@@ -8,7 +8,7 @@
 //! | 28..32 | rotation u8 × 4, `(w, x, y, z)`, stored as `q·128 + 128` ⇒ `q = (b − 128)/128`, then normalised |
 
 use crate::scene::format::{GaussianBuilder, Limits, RawGaussian};
-use crate::scene::{Gaussians, SH_C0, SceneError, logit};
+use crate::scene::{Gaussians, SH_C0, SceneError, logit, sigmoid};
 
 /// Bytes per Gaussian.
 pub const RECORD_BYTES: usize = 32;
@@ -45,34 +45,42 @@ pub fn read(bytes: &[u8], limits: &Limits) -> Result<Gaussians, SceneError> {
     Ok(builder.finish())
 }
 
+/// The `.splat` bytes of `g`, as antimatter15's `convert.py` writes them: positions and scales
+/// exact (f32), colour and opacity at 8 bits, rotation at 8 bits a component; the format has
+/// no view-dependent colour, so SH degrees above 0 are dropped.
+pub fn encode(g: &Gaussians) -> Vec<u8> {
+    let mut out = Vec::with_capacity(g.len() * RECORD_BYTES);
+    let u8c = |v: f32| v.round().clamp(0.0, 255.0) as u8;
+    for i in 0..g.len() {
+        g.means[i]
+            .iter()
+            .for_each(|v| out.extend_from_slice(&v.to_le_bytes()));
+        g.log_scales[i]
+            .iter()
+            .for_each(|v| out.extend_from_slice(&v.exp().to_le_bytes()));
+        for c in 0..3 {
+            out.push(u8c((0.5 + SH_C0 * g.sh_dc[i][c]) * 255.0));
+        }
+        out.push(u8c(sigmoid(g.opacity_logits[i]) * 255.0));
+        for k in 0..4 {
+            out.push(u8c(g.rotations[i][k] * 128.0 + 128.0));
+        }
+    }
+    out
+}
+
+/// Writes `g` (validated first) as a `.splat` ([`encode`]).
+pub fn write<W: std::io::Write>(g: &Gaussians, mut w: W) -> Result<(), SceneError> {
+    g.validate()?;
+    w.write_all(&encode(g)).map_err(SceneError::IoPlain)?;
+    w.flush().map_err(SceneError::IoPlain)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::scene::format::read_scene_bytes;
     use crate::scene::ply::tests::synthetic;
-    use crate::scene::sigmoid;
-
-    /// Test-only encoder (as antimatter15's `convert.py`).
-    fn encode(g: &Gaussians) -> Vec<u8> {
-        let mut out = Vec::with_capacity(g.len() * RECORD_BYTES);
-        let u8c = |v: f32| v.round().clamp(0.0, 255.0) as u8;
-        for i in 0..g.len() {
-            g.means[i]
-                .iter()
-                .for_each(|v| out.extend_from_slice(&v.to_le_bytes()));
-            g.log_scales[i]
-                .iter()
-                .for_each(|v| out.extend_from_slice(&v.exp().to_le_bytes()));
-            for c in 0..3 {
-                out.push(u8c((0.5 + SH_C0 * g.sh_dc[i][c]) * 255.0));
-            }
-            out.push(u8c(sigmoid(g.opacity_logits[i]) * 255.0));
-            for k in 0..4 {
-                out.push(u8c(g.rotations[i][k] * 128.0 + 128.0));
-            }
-        }
-        out
-    }
 
     fn read_bytes(b: &[u8]) -> Result<Gaussians, SceneError> {
         read_scene_bytes(b, Some("splat"), &Limits::default())

@@ -34,7 +34,7 @@
 use std::io::Read;
 
 use crate::scene::format::{GaussianBuilder, Limits, NGSP_MAGIC, RawGaussian};
-use crate::scene::{Gaussians, SceneError};
+use crate::scene::{Gaussians, SceneError, sigmoid};
 
 /// Niantic's scale factor for DC colours (instead of `SH_C0`).
 pub const COLOR_SCALE: f32 = 0.15;
@@ -516,87 +516,115 @@ fn decode(plan: &Plan, s: [&[u8]; 6]) -> Result<Gaussians, SceneError> {
     Ok(builder.finish())
 }
 
+fn to_u8(x: f32) -> u8 {
+    x.round().clamp(0.0, 255.0) as u8
+}
+
+/// The six attribute arrays of `g` as Niantic's `packGaussians` makes them (RDF → RUB flips,
+/// 12 fractional bits), with every SH coefficient at 8 bits (Niantic's writer keeps 5 bits
+/// for degree 1 and 4 above; readers take the byte either way). `flip: false` stores values
+/// as given (tests).
+fn pack(g: &Gaussians, version: u32, flip: bool) -> [Vec<u8>; 6] {
+    let n = g.len();
+    let fp = if flip { FLIP_P } else { [1.0; 3] };
+    let mut out: [Vec<u8>; 6] = Default::default();
+    for i in 0..n {
+        for (f, m) in fp.iter().zip(g.means[i]) {
+            let fixed = (f * m * (1u32 << WRITE_FRACTIONAL_BITS) as f32).round() as i32;
+            out[0].extend_from_slice(&[
+                (fixed & 0xff) as u8,
+                ((fixed >> 8) & 0xff) as u8,
+                ((fixed >> 16) & 0xff) as u8,
+            ]);
+        }
+        out[1].push(to_u8(sigmoid(g.opacity_logits[i]) * 255.0));
+        for c in 0..3 {
+            out[2].push(to_u8(g.sh_dc[i][c] * (COLOR_SCALE * 255.0) + 0.5 * 255.0));
+        }
+        for a in 0..3 {
+            out[3].push(to_u8((g.log_scales[i][a] + 10.0) * 16.0));
+        }
+        let [w, x, y, z] = g.rotations[i];
+        let q = if flip { [x, -y, -z, w] } else { [x, y, z, w] }; // xyzw
+        if version >= 3 {
+            let largest = (0..4).fold(0, |b, k| if q[k].abs() > q[b].abs() { k } else { b });
+            let negate = q[largest] < 0.0;
+            let mut comp = largest as u32;
+            for (k, &qk) in q.iter().enumerate() {
+                if k != largest {
+                    let negbit = ((qk < 0.0) ^ negate) as u32;
+                    let mag = ((511.0 * (qk.abs() / std::f32::consts::FRAC_1_SQRT_2) + 0.5) as u32)
+                        .min(511);
+                    comp = (comp << 10) | (negbit << 9) | mag;
+                }
+            }
+            out[4].extend_from_slice(&comp.to_le_bytes());
+        } else {
+            let s = if q[3] < 0.0 { -127.5 } else { 127.5 };
+            for &qk in &q[..3] {
+                out[4].push(to_u8(qk * s + 127.5));
+            }
+        }
+        let rest = g.rest_of(i);
+        for (j, &v) in rest.iter().enumerate() {
+            let f = if flip { FLIP_SH[j / 3] } else { 1.0 };
+            out[5].push(((f * v * 128.0).round() + 128.0).clamp(0.0, 255.0) as u8);
+        }
+    }
+    out
+}
+
+fn legacy_bytes(g: &Gaussians, version: u32, flip: bool) -> Vec<u8> {
+    let mut raw = b"NGSP".to_vec();
+    raw.extend_from_slice(&version.to_le_bytes());
+    raw.extend_from_slice(&(g.len() as u32).to_le_bytes());
+    raw.extend_from_slice(&[g.sh_degree, WRITE_FRACTIONAL_BITS, 0, 0]);
+    for s in pack(g, version, flip) {
+        raw.extend_from_slice(&s);
+    }
+    raw
+}
+
+fn gzip(raw: &[u8]) -> Vec<u8> {
+    use std::io::Write;
+    let mut e = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
+    e.write_all(raw).expect("writing to memory");
+    e.finish().expect("writing to memory")
+}
+
+/// Fractional bits of the positions in the files [`encode`] writes (Niantic's default).
+pub const WRITE_FRACTIONAL_BITS: u8 = 12;
+
+/// The `.spz` bytes of `g`: version 3 in gzip, the container every spz reader opens
+/// (Niantic's `saveSpz` before version 4). Lossy: positions in 24-bit fixed point with
+/// [`WRITE_FRACTIONAL_BITS`] (1/4096 of a unit), colour at 8 bits of `dc·0.15`, opacity and
+/// log-scales at 8 bits, rotations "smallest three" at 3 × 9 bits, SH at 8 bits. A position
+/// beyond ±2048 units does not fit and is refused.
+pub fn encode(g: &Gaussians) -> Result<Vec<u8>, SceneError> {
+    let limit = (1u32 << 23) as f32 / (1u32 << WRITE_FRACTIONAL_BITS) as f32;
+    if let Some(i) = (0..g.len()).find(|&i| g.means[i].iter().any(|m| m.abs() >= limit)) {
+        return Err(SceneError::Unsupported(format!(
+            "spz keeps positions within ±{limit} units (24 bits, {WRITE_FRACTIONAL_BITS} \
+             fractional); Gaussian {i} is at {:?}",
+            g.means[i]
+        )));
+    }
+    Ok(gzip(&legacy_bytes(g, 3, true)))
+}
+
+/// Writes `g` (validated first) as an `.spz` ([`encode`]).
+pub fn write<W: std::io::Write>(g: &Gaussians, mut w: W) -> Result<(), SceneError> {
+    g.validate()?;
+    w.write_all(&encode(g)?).map_err(SceneError::IoPlain)?;
+    w.flush().map_err(SceneError::IoPlain)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::scene::format::read_scene_bytes;
     use crate::scene::ply::tests::synthetic;
-    use crate::scene::sigmoid;
     use std::io::Write;
-
-    fn to_u8(x: f32) -> u8 {
-        x.round().clamp(0.0, 255.0) as u8
-    }
-
-    /// Test-only packer following Niantic's `packGaussians` (RDF → RUB flips, 12 fractional
-    /// bits, full 8-bit SH so that the tolerance is tight). `flip: false` stores values as given.
-    fn pack(g: &Gaussians, version: u32, flip: bool) -> [Vec<u8>; 6] {
-        let n = g.len();
-        let fp = if flip { FLIP_P } else { [1.0; 3] };
-        let mut out: [Vec<u8>; 6] = Default::default();
-        for i in 0..n {
-            for (f, m) in fp.iter().zip(g.means[i]) {
-                let fixed = (f * m * 4096.0).round() as i32;
-                out[0].extend_from_slice(&[
-                    (fixed & 0xff) as u8,
-                    ((fixed >> 8) & 0xff) as u8,
-                    ((fixed >> 16) & 0xff) as u8,
-                ]);
-            }
-            out[1].push(to_u8(sigmoid(g.opacity_logits[i]) * 255.0));
-            for c in 0..3 {
-                out[2].push(to_u8(g.sh_dc[i][c] * (COLOR_SCALE * 255.0) + 0.5 * 255.0));
-            }
-            for a in 0..3 {
-                out[3].push(to_u8((g.log_scales[i][a] + 10.0) * 16.0));
-            }
-            let [w, x, y, z] = g.rotations[i];
-            let q = if flip { [x, -y, -z, w] } else { [x, y, z, w] }; // xyzw
-            if version >= 3 {
-                let largest = (0..4).fold(0, |b, k| if q[k].abs() > q[b].abs() { k } else { b });
-                let negate = q[largest] < 0.0;
-                let mut comp = largest as u32;
-                for (k, &qk) in q.iter().enumerate() {
-                    if k != largest {
-                        let negbit = ((qk < 0.0) ^ negate) as u32;
-                        let mag = ((511.0 * (qk.abs() / std::f32::consts::FRAC_1_SQRT_2) + 0.5)
-                            as u32)
-                            .min(511);
-                        comp = (comp << 10) | (negbit << 9) | mag;
-                    }
-                }
-                out[4].extend_from_slice(&comp.to_le_bytes());
-            } else {
-                let s = if q[3] < 0.0 { -127.5 } else { 127.5 };
-                for &qk in &q[..3] {
-                    out[4].push(to_u8(qk * s + 127.5));
-                }
-            }
-            let rest = g.rest_of(i);
-            for (j, &v) in rest.iter().enumerate() {
-                let f = if flip { FLIP_SH[j / 3] } else { 1.0 };
-                out[5].push(((f * v * 128.0).round() + 128.0).clamp(0.0, 255.0) as u8);
-            }
-        }
-        out
-    }
-
-    fn legacy_bytes(g: &Gaussians, version: u32, flip: bool) -> Vec<u8> {
-        let mut raw = b"NGSP".to_vec();
-        raw.extend_from_slice(&version.to_le_bytes());
-        raw.extend_from_slice(&(g.len() as u32).to_le_bytes());
-        raw.extend_from_slice(&[g.sh_degree, 12, 0, 0]);
-        for s in pack(g, version, flip) {
-            raw.extend_from_slice(&s);
-        }
-        raw
-    }
-
-    fn gzip(raw: &[u8]) -> Vec<u8> {
-        let mut e = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
-        e.write_all(raw).unwrap();
-        e.finish().unwrap()
-    }
 
     /// Test-only v4 encoder following Niantic's `saveSpz` (version ≥ 4 branch).
     fn encode_v4_streams(g: &Gaussians, streams: &[Vec<u8>], sizes: &[usize]) -> Vec<u8> {
