@@ -429,6 +429,45 @@ async fn a_real_scene_is_detected_on_views_the_job_never_saw() {
     assert_eq!(v["best"]["matched_head"], true);
     let v0 = t.verify(&k.verifier, &original_views, None).await;
     assert_eq!(v0["detected"], false, "{v0}");
+
+    // The watermarked asset downloaded in each format viewers load (`?format=`): each format's
+    // own quantisation, then the same dispute.
+    for format in ["compressed_ply", "splat", "spz"] {
+        let r = t
+            .get(
+                &k.owner,
+                &format!("/v1/assets/{marked_id}/file?format={format}"),
+            )
+            .await;
+        assert_eq!(r.status(), StatusCode::OK, "{format}");
+        let disposition = r.headers()[reqwest::header::CONTENT_DISPOSITION]
+            .to_str()
+            .unwrap()
+            .to_string();
+        let bytes = r.bytes().await.unwrap();
+        let f = splatmark::scene::Format::parse(format).unwrap();
+        assert!(
+            disposition.ends_with(&format!(".{}\"", f.extension())),
+            "{disposition}"
+        );
+        let g = splatmark::scene::format::read_as(&bytes, f, &Limits::default()).unwrap();
+        assert_eq!(g.len(), marked.len(), "{format}");
+        let views = render_views(&g, &unseen, &ro).unwrap();
+        let v = t.verify(&k.verifier, &views, None).await;
+        eprintln!(
+            "donut as {format} ({} bytes), unseen views: {}",
+            bytes.len(),
+            v["best"]
+        );
+        assert_eq!(v["detected"], true, "{format}: {v}");
+    }
+    let r = t
+        .get(
+            &k.owner,
+            &format!("/v1/assets/{marked_id}/file?format=ksplat"),
+        )
+        .await;
+    assert_eq!(r.status(), StatusCode::BAD_REQUEST);
     t.stop().await;
 }
 

@@ -19,7 +19,7 @@ use super::error::{ApiError, ApiResult};
 use crate::embed::sbag::Role;
 use crate::scene::camera::read_cameras_bytes;
 use crate::scene::format::{detect_format, read_as};
-use crate::scene::{Limits, SceneError, cost};
+use crate::scene::{Format, Limits, SceneError, cost};
 use crate::store::{Asset, AssetKind, AuditEntry, NewAsset, Scope};
 
 /// A multipart field's failure as a client error.
@@ -415,17 +415,51 @@ pub async fn get_one(
     .into_response())
 }
 
-/// `GET /v1/assets/{id}/file` — the scene as uploaded (originals) or as INRIA binary PLY
-/// (watermarked), streamed.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FileQuery {
+    /// `ply`, `compressed_ply` (or `compressed-ply`), `splat` or `spz`.
+    format: Option<String>,
+}
+
+/// The format a `?format=` names (`compressed-ply` accepted for `compressed_ply`).
+fn requested_format(name: &str) -> ApiResult<Format> {
+    Format::parse(&name.replace('-', "_")).ok_or_else(|| {
+        ApiError::bad_request(format!(
+            "format {name:?}: expected ply, compressed_ply, splat or spz"
+        ))
+    })
+}
+
+/// Bytes per Gaussian of the largest file a conversion writes (a PLY at SH degree 3: 62 floats).
+const MAX_WRITTEN_BYTES_PER_GAUSSIAN: u64 = 62 * 4;
+
+/// `GET /v1/assets/{id}/file[?format=ply|compressed_ply|splat|spz]` — the scene as stored (as
+/// uploaded for originals, INRIA binary PLY for watermarked assets), streamed; with `format`
+/// naming another format, converted to it (`scene::write_scene`: the quantised formats round
+/// as they do in every viewer — docs/RESULTS.md records what each keeps of a watermark). A
+/// conversion decodes the scene in memory, so it is admitted against the same memory budget
+/// and parsing slots as uploads.
 pub async fn file(
     State(st): State<AppState>,
     caller: Caller,
     Path(id): Path<String>,
+    Query(q): Query<FileQuery>,
     headers: HeaderMap,
 ) -> ApiResult<Response> {
     let a = readable(&st, &caller, parse_id(&id)?).await?;
     caller.may_download(&a.owner)?;
-    let etag = format!("\"{}\"", a.sha256);
+    let stored = Format::parse(&a.format)
+        .ok_or_else(|| ApiError::internal(format!("stored format {:?}", a.format)))?;
+    let to = match q.format.as_deref() {
+        Some(name) => requested_format(name)?,
+        None => stored,
+    };
+    let etag = if to == stored {
+        format!("\"{}\"", a.sha256)
+    } else {
+        format!("\"{}-{}\"", a.sha256, to.as_str())
+    };
     if headers
         .get(header::IF_NONE_MATCH)
         .is_some_and(|v| v.as_bytes() == etag.as_bytes())
@@ -441,14 +475,18 @@ pub async fn file(
         return Ok(r);
     }
     let path = st.store.blobs().path(&a.sha256)?;
-    let f = tokio::fs::File::open(&path)
-        .await
-        .map_err(ApiError::internal)?;
-    let body = Body::from_stream(tokio_util::io::ReaderStream::new(f));
-    let ext = match a.format.as_str() {
-        "splat" => "splat",
-        "spz" => "spz",
-        _ => "ply",
+    let (body, length) = if to == stored {
+        let f = tokio::fs::File::open(&path)
+            .await
+            .map_err(ApiError::internal)?;
+        (
+            Body::from_stream(tokio_util::io::ReaderStream::new(f)),
+            a.size,
+        )
+    } else {
+        let bytes = convert(&st, &path, stored, to).await?;
+        let n = bytes.len() as u64;
+        (Body::from(bytes), n)
     };
     let mut r = body.into_response();
     let h = r.headers_mut();
@@ -456,7 +494,7 @@ pub async fn file(
         header::CONTENT_TYPE,
         HeaderValue::from_static("application/octet-stream"),
     );
-    h.insert(header::CONTENT_LENGTH, HeaderValue::from(a.size));
+    h.insert(header::CONTENT_LENGTH, HeaderValue::from(length));
     if let Ok(v) = HeaderValue::from_str(&etag) {
         h.insert(header::ETAG, v);
     }
@@ -465,10 +503,89 @@ pub async fn file(
         header::CACHE_CONTROL,
         HeaderValue::from_static("private, no-cache"),
     );
-    if let Ok(v) = HeaderValue::from_str(&format!("attachment; filename=\"{}.{ext}\"", a.id)) {
+    if let Ok(v) = HeaderValue::from_str(&format!(
+        "attachment; filename=\"{}.{}\"",
+        a.id,
+        to.extension()
+    )) {
         h.insert(header::CONTENT_DISPOSITION, v);
     }
     Ok(r)
+}
+
+/// The stored scene at `path` (in `from`) written in `to`, within the upload memory budget.
+async fn convert(
+    st: &AppState,
+    path: &std::path::Path,
+    from: Format,
+    to: Format,
+) -> ApiResult<Vec<u8>> {
+    let limits = Limits {
+        max_gaussians: st.cfg.max_gaussians,
+        max_file_bytes: None,
+    };
+    let need = {
+        let (path, limits) = (path.to_path_buf(), limits);
+        tokio::task::spawn_blocking(move || {
+            use std::io::Read;
+            let len = std::fs::metadata(&path).map_err(ApiError::internal)?.len();
+            let mut prefix = Vec::new();
+            std::fs::File::open(&path)
+                .and_then(|f| f.take(cost::PROBE_BYTES as u64).read_to_end(&mut prefix))
+                .map_err(ApiError::internal)?;
+            let declared = cost::declared(&prefix, len, Some(from.extension()))?;
+            limits.check_count(declared.count)?;
+            Ok::<_, ApiError>(
+                declared.read_bytes(len).saturating_add(
+                    declared
+                        .count
+                        .saturating_mul(MAX_WRITTEN_BYTES_PER_GAUSSIAN),
+                ),
+            )
+        })
+        .await
+        .map_err(ApiError::internal)??
+    };
+    let need_kib = need.div_ceil(1024);
+    let budget_kib = st.cfg.upload_memory_kib();
+    if need_kib > budget_kib {
+        return Err(ApiError::too_large(format!(
+            "converting this scene takes about {} MiB of memory; this server converts within \
+             {} MiB (upload_memory_mb)",
+            need_kib.div_ceil(1024),
+            budget_kib / 1024
+        )));
+    }
+    let memory = super::admit_many(
+        &st.upload_memory,
+        u32::try_from(need_kib).map_err(ApiError::internal)?,
+        std::time::Duration::from_millis(st.cfg.upload_wait_ms),
+        "the memory for converting scenes is in use; retry shortly",
+    )
+    .await?;
+    let permit = super::admit(
+        &st.upload_slots,
+        std::time::Duration::from_millis(st.cfg.upload_wait_ms),
+        "every parsing slot is busy; retry shortly",
+    )
+    .await?;
+    let path = path.to_path_buf();
+    tokio::task::spawn_blocking(move || {
+        let _held = (permit, memory);
+        let bytes = std::fs::read(&path).map_err(ApiError::internal)?;
+        let g = read_as(&bytes, from, &limits)?;
+        drop(bytes);
+        let mut out = Vec::new();
+        crate::scene::write_scene(&g, to, &mut out).map_err(|e| match e {
+            // What a format cannot hold (an spz position past its range) is the request's
+            // problem, not the server's.
+            SceneError::Unsupported(m) => ApiError::unprocessable(m),
+            e => ApiError::internal(e),
+        })?;
+        Ok(out)
+    })
+    .await
+    .map_err(ApiError::internal)?
 }
 
 #[derive(Deserialize)]
