@@ -400,3 +400,78 @@ fn embed_on_wgpu_renders_and_decodes_on_the_gpu_and_marks_as_the_cpu_does() {
         assert!((a - b).abs() <= 0.05 * a.abs(), "{key}: cpu {a}, wgpu {b}");
     }
 }
+
+#[test]
+fn explain_draws_where_the_message_lives_for_each_view() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = scene(dir.path());
+    let out = dir.path().join("marked.ply");
+    let attr = dir.path().join("attr.jsonl");
+    let v = ok_json(
+        &bin()
+            .arg("embed")
+            .arg(&input)
+            .args(VIEWS)
+            .args(["--message", "c0ffee42", "--steps", "2"])
+            .arg("--out")
+            .arg(&out)
+            .arg("--attribution")
+            .arg(&attr)
+            .output()
+            .unwrap(),
+    );
+    let pictures = dir.path().join("explain");
+    let e = ok_json(
+        &bin()
+            .arg("explain")
+            .arg(&out)
+            .arg("--attribution")
+            .arg(&attr)
+            .arg("--original")
+            .arg(&input)
+            .args(VIEWS)
+            .args(["--limit", "2", "--out"])
+            .arg(&pictures)
+            .output()
+            .unwrap(),
+    );
+    assert_eq!(e["views"], 2);
+    assert_eq!(e["carriers"], v["carriers"]);
+    assert_eq!(e["gaussians"], v["output_gaussians"]);
+    let index = std::fs::read_to_string(pictures.join("index.html")).unwrap();
+    for kind in ["view", "roles", "heat", "diff10"] {
+        let name = format!("000_orbit_000_{kind}.png");
+        assert!(index.contains(&name), "{kind} missing from index.html");
+        let img = image::open(pictures.join(&name)).unwrap().to_rgb8();
+        assert_eq!(img.dimensions(), (64, 64));
+        // Every picture shows something: the object over the black background.
+        assert!(img.pixels().any(|p| p.0 != [0, 0, 0]), "{kind} is black");
+    }
+    // The role picture shows carriers in red.
+    let roles = image::open(pictures.join("000_orbit_000_roles.png"))
+        .unwrap()
+        .to_rgb8();
+    assert!(
+        roles
+            .pixels()
+            .any(|p| p.0[0] > 150 && p.0[1] < 90 && p.0[2] < 90),
+        "no carrier in view"
+    );
+    // The records of another scene are refused.
+    let o = bin()
+        .arg("explain")
+        .arg(&input)
+        .arg("--attribution")
+        .arg(&attr)
+        .args(VIEWS)
+        .arg("--out")
+        .arg(dir.path().join("wrong"))
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("not this scene's attribution"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+}

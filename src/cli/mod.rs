@@ -16,6 +16,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
 
 mod embed;
+mod explain;
 mod fit;
 mod probe;
 mod serve;
@@ -44,6 +45,10 @@ enum Command {
     },
     /// Render a scene through its cameras or orbit views to PNG files.
     Render(RenderArgs),
+    /// Attribution pictures of a watermarked scene, per view: carriers / compensators /
+    /// untouched, each Gaussian's share of the watermark gradient, the difference to the
+    /// original ×10; PNG files and an index.html.
+    Explain(Box<explain::ExplainArgs>),
     /// Convert a scene between formats: the output's extension picks the format (.ply: INRIA
     /// binary PLY, lossless; .compressed.ply, .splat, .spz: the viewers' quantised formats).
     Convert {
@@ -480,6 +485,7 @@ fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Info { scene, limits } => info(&scene, &limits),
         Command::Render(args) => render_cmd(&args),
+        Command::Explain(args) => explain::explain_cmd(&args),
         Command::Convert { scene, out, limits } => convert(&scene, &out, &limits),
         Command::Decoder {
             command: DecoderCommand::Train(args),
