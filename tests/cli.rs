@@ -311,3 +311,52 @@ fn convert_writes_the_format_its_output_names() {
     );
     assert!(!bad.exists());
 }
+
+#[test]
+fn progress_json_reports_each_phase_step_rate_and_eta() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("object.ply");
+    let g = splatmark::scene::synthetic::object_scene(300, 0, 3);
+    splatmark::scene::write_ply(&g, std::fs::File::create(&input).unwrap()).unwrap();
+    let o = bin()
+        .args(["--progress", "json", "render"])
+        .arg(&input)
+        .args([
+            "--orbit", "3", "--width", "32", "--height", "32", "--device", "cpu",
+        ])
+        .arg("--out")
+        .arg(dir.path().join("r"))
+        .output()
+        .unwrap();
+    assert!(o.status.success());
+    let lines: Vec<serde_json::Value> = String::from_utf8_lossy(&o.stderr)
+        .lines()
+        .filter(|l| l.starts_with('{'))
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    let last = lines.last().expect("progress lines");
+    assert_eq!(last["phase"], "render");
+    assert_eq!(
+        (last["step"].as_u64(), last["total"].as_u64()),
+        (Some(3), Some(3))
+    );
+    assert_eq!(last["eta_s"], 0.0, "{last}");
+    assert!(last["rate"].as_f64().unwrap() > 0.0, "{last}");
+    // Not a terminal and no --progress: no progress at all.
+    let quiet = bin()
+        .arg("render")
+        .arg(&input)
+        .args([
+            "--orbit", "3", "--width", "32", "--height", "32", "--device", "cpu",
+        ])
+        .arg("--out")
+        .arg(dir.path().join("q"))
+        .output()
+        .unwrap();
+    assert!(quiet.status.success());
+    assert!(
+        !String::from_utf8_lossy(&quiet.stderr).contains("000_orbit_000.png"),
+        "{}",
+        String::from_utf8_lossy(&quiet.stderr)
+    );
+}

@@ -6,6 +6,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result, bail};
 use clap::Args;
 
+use super::progress::{Progress, ProgressMode};
 use super::{DeviceArg, LimitArgs, ViewArgs, load};
 use crate::decoder::WatermarkModel;
 use crate::decoder::eval::read_images;
@@ -187,7 +188,7 @@ fn write_atomic(path: &Path, f: impl FnOnce(&mut std::fs::File) -> Result<()>) -
     Ok(())
 }
 
-pub(crate) fn embed_cmd(a: &EmbedArgs) -> Result<()> {
+pub(crate) fn embed_cmd(a: &EmbedArgs, progress: ProgressMode) -> Result<()> {
     if ![32, 48, 64].contains(&a.bits) {
         bail!("--bits must be 32, 48 or 64, got {}", a.bits);
     }
@@ -269,10 +270,12 @@ pub(crate) fn embed_cmd(a: &EmbedArgs) -> Result<()> {
         held.len()
     );
     let every = (opts.finetune.steps / 20).max(1);
+    let mut bar = Progress::new(progress);
     let out = embed(&g, &train, &message, &model, &opts, |p| {
-        print_progress(&p, every);
+        report_progress(&mut bar, &p, every);
         std::ops::ControlFlow::Continue(())
     })?;
+    bar.finish();
     let r = &out.report;
     eprintln!(
         "{} carriers + {} compensators (budget B = {}, {} pruned); carriers hold {:.1} % of the watermark gradient; {:.1} s",
@@ -326,32 +329,49 @@ pub(crate) struct VerifyArgs {
     model: ModelArgs,
 }
 
-/// One progress line on stderr (every `every` steps).
-fn print_progress(p: &crate::embed::pipeline::Progress, every: usize) {
+/// Reports the embedding's progress: a phase per pipeline phase, a step per finetuning step
+/// (in `--progress lines`, one line every `every` steps).
+fn report_progress(bar: &mut Progress, p: &crate::embed::pipeline::Progress, every: usize) {
+    let phase = |bar: &mut Progress, name: &str, total: u64| {
+        if bar.lines() {
+            bar.println(&format!("{name}…"));
+        } else {
+            bar.phase(name, total);
+        }
+    };
     match p.phase {
-        Phase::Targets => eprintln!("rendering targets…"),
-        Phase::Plan => eprintln!("pruning, scoring, selecting and splitting carriers…"),
-        Phase::Calibrate => eprintln!("measuring the original: matched head and reference logits…"),
+        Phase::Targets => phase(bar, "rendering targets", 0),
+        Phase::Plan => phase(bar, "pruning, scoring, selecting and splitting carriers", 0),
+        Phase::Calibrate => phase(
+            bar,
+            "measuring the original: matched head and reference logits",
+            0,
+        ),
         Phase::Finetune => {
-            if let Some(s) = p.log
-                && (s.step % every == 0 || s.step == 1)
-            {
-                eprintln!(
-                    "step {}/{} | L_wm {:.4} (bce clean {:.4}, eot {:.4}) | bits clean {:.3} eot {:.3} | L_vis {:.4} | {:.2} dB | {:.2} s/step",
-                    s.step,
-                    p.total,
-                    s.l_wm,
-                    s.bce_clean,
-                    s.bce_eot,
-                    s.bit_acc_clean,
-                    s.bit_acc_eot,
-                    s.l_vis,
-                    s.psnr,
-                    s.seconds
-                );
+            let Some(s) = p.log else { return };
+            if s.step == 1 && !bar.lines() {
+                bar.phase("finetune", p.total as u64);
+            }
+            let line = format!(
+                "L_wm {:.4} (bce clean {:.4}, eot {:.4}) | bits clean {:.3} eot {:.3} | L_vis {:.4} | {:.2} dB | {:.2} s/step",
+                s.l_wm,
+                s.bce_clean,
+                s.bce_eot,
+                s.bit_acc_clean,
+                s.bit_acc_eot,
+                s.l_vis,
+                s.psnr,
+                s.seconds
+            );
+            if bar.lines() {
+                if s.step % every == 0 || s.step == 1 {
+                    bar.println(&format!("step {}/{} | {line}", s.step, p.total));
+                }
+            } else {
+                bar.step(s.step as u64, &line);
             }
         }
-        Phase::Done => {}
+        Phase::Done => bar.finish(),
     }
 }
 

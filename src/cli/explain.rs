@@ -10,6 +10,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result, bail};
 use clap::Args;
 
+use super::progress::{Progress, ProgressMode};
 use super::{LimitArgs, ViewArgs, load, safe_name};
 use crate::embed::attribution::{AttributionRecord, read_jsonl};
 use crate::embed::sbag::Role;
@@ -82,7 +83,7 @@ fn records_for(g: &Gaussians, path: &Path) -> Result<Vec<AttributionRecord>> {
     Ok(recs)
 }
 
-pub(crate) fn explain_cmd(a: &ExplainArgs) -> Result<()> {
+pub(crate) fn explain_cmd(a: &ExplainArgs, progress: ProgressMode) -> Result<()> {
     let (_, g) = load(&a.scene, &a.limits)?;
     let recs = records_for(&g, &a.attribution)?;
     let original = match &a.original {
@@ -128,6 +129,8 @@ pub(crate) fn explain_cmd(a: &ExplainArgs) -> Result<()> {
     };
 
     let mut rows = String::new();
+    let mut bar = Progress::new(progress);
+    bar.phase("explain", cams.len() as u64);
     for (k, cam) in cams.iter().enumerate() {
         let stem = format!("{:03}_{}", k, safe_name(&cam.name));
         let save = |kind: &str, w: u32, h: u32, px: &[[f32; 3]]| -> Result<String> {
@@ -164,8 +167,13 @@ pub(crate) fn explain_cmd(a: &ExplainArgs) -> Result<()> {
                 .map(|c| format!("<td><a href=\"{c}\"><img src=\"{c}\" width=\"256\"></a></td>"))
                 .collect::<String>()
         );
-        eprintln!("{} ({w}×{h})", cam.name);
+        let line = format!("{} ({w}×{h})", cam.name);
+        if bar.lines() {
+            bar.println(&line);
+        }
+        bar.step(k as u64 + 1, &line);
     }
+    bar.finish();
     let (carriers, compensators) = (count(Role::Carrier), count(Role::Compensator));
     let html = format!(
         "<!doctype html>\n<meta charset=\"utf-8\">\n<title>splatmark explain: {scene}</title>\n\

@@ -19,6 +19,7 @@ mod embed;
 mod explain;
 mod fit;
 mod probe;
+mod progress;
 mod serve;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -32,6 +33,10 @@ use std::process::ExitCode;
 struct Cli {
     #[command(subcommand)]
     command: Command,
+    /// Progress of long commands (embed, render, explain) on stderr: auto (a bar on a terminal,
+    /// nothing otherwise), bar, lines (plain text, for logs), json (one object per line), none.
+    #[arg(long, global = true, value_enum, default_value = "auto")]
+    progress: progress::ProgressMode,
 }
 
 #[derive(Subcommand, Debug)]
@@ -484,8 +489,8 @@ pub fn main() -> ExitCode {
 fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Info { scene, limits } => info(&scene, &limits),
-        Command::Render(args) => render_cmd(&args),
-        Command::Explain(args) => explain::explain_cmd(&args),
+        Command::Render(args) => render_cmd(&args, cli.progress),
+        Command::Explain(args) => explain::explain_cmd(&args, cli.progress),
         Command::Convert { scene, out, limits } => convert(&scene, &out, &limits),
         Command::Decoder {
             command: DecoderCommand::Train(args),
@@ -505,7 +510,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Fit(args) => fit::fit_cmd(&args),
         Command::Bench { command } => probe::bench_cmd(&command),
         Command::Decode(args) => decode_cmd(&args),
-        Command::Embed(args) => embed::embed_cmd(&args),
+        Command::Embed(args) => embed::embed_cmd(&args, cli.progress),
         Command::Verify(args) => embed::verify_cmd(&args),
         Command::Eval(args) => embed::eval_scene_cmd(&args),
         Command::Serve(args) => serve::serve_cmd(&args),
@@ -707,7 +712,7 @@ fn info(path: &Path, limits: &LimitArgs) -> Result<()> {
     Ok(())
 }
 
-fn render_cmd(a: &RenderArgs) -> Result<()> {
+fn render_cmd(a: &RenderArgs, progress: progress::ProgressMode) -> Result<()> {
     let (_, g) = load(&a.scene, &a.limits)?;
     let mut cams = a.views.cameras(&g)?;
     if let Some(n) = a.limit {
@@ -722,6 +727,8 @@ fn render_cmd(a: &RenderArgs) -> Result<()> {
     };
     let rasterizer = crate::render::gpu::Rasterizer::open(a.device)?;
     eprintln!("rendering on {}", rasterizer.describe());
+    let mut bar = progress::Progress::new(progress);
+    bar.phase("render", cams.len() as u64);
     for (k, cam) in cams.iter().enumerate() {
         let t = std::time::Instant::now();
         let (w, h, image) = rasterizer
@@ -731,12 +738,17 @@ fn render_cmd(a: &RenderArgs) -> Result<()> {
         to_rgb8(w, h, &image)
             .save(&file)
             .with_context(|| format!("cannot write {}", file.display()))?;
-        eprintln!(
+        let line = format!(
             "{} ({w}×{h}) in {:.0} ms",
             file.display(),
             t.elapsed().as_secs_f64() * 1e3
         );
+        if bar.lines() {
+            bar.println(&line);
+        }
+        bar.step(k as u64 + 1, &line);
     }
+    bar.finish();
     Ok(())
 }
 
