@@ -17,6 +17,7 @@ use crate::decoder::artifact::rgb8_tensor;
 use crate::decoder::dwt::ll_size;
 use crate::decoder::model::decoder_input;
 use crate::decoder::projection::ViewProjection;
+use crate::render::gpu::Rasterizer;
 use crate::render::{self, RenderOptions};
 use crate::scene::bounds::robust_bounds;
 use crate::scene::{Camera, Gaussians};
@@ -124,6 +125,7 @@ pub fn fit_projection(
     model: &WatermarkModel,
     opts: &RenderOptions,
     cfg: &ProjectionConfig,
+    rasterizer: &Rasterizer,
 ) -> Result<ViewProjection, EmbedError> {
     let cams = calibration_cameras(original, train, cfg);
     // Each view of the original is rendered once: its features, the gain over the training
@@ -131,12 +133,20 @@ pub fn fit_projection(
     // original all read the same 8-bit renders.
     let renders = cams
         .iter()
-        .map(|c| render_rgb8(original, c, opts))
+        .map(|c| render_rgb8(original, c, opts, rasterizer))
         .collect::<Result<Vec<_>, _>>()?;
     let features = features_of(model, &renders);
     let fitted = if cfg.matched {
         let gain = gain_of_renders(&renders[..train.len()], model);
-        let nuisance = nuisance_samples(original, &cams, Some(&renders), model, opts, cfg)?;
+        let nuisance = nuisance_samples(
+            original,
+            &cams,
+            Some(&renders),
+            model,
+            opts,
+            cfg,
+            rasterizer,
+        )?;
         ViewProjection::fit_matched(
             &features,
             &nuisance,
@@ -151,14 +161,15 @@ pub fn fit_projection(
     fitted.map_err(|e| EmbedError::Invalid(e.to_string()))
 }
 
-/// `g` through `camera`, rounded to 8 bits as a saved image would be.
+/// `g` through `camera` by `rasterizer`, rounded to 8 bits as a saved image would be.
 fn render_rgb8(
     g: &Gaussians,
     camera: &Camera,
     opts: &RenderOptions,
+    rasterizer: &Rasterizer,
 ) -> Result<image::RgbImage, render::RenderError> {
-    let r = render::render(g, camera, opts)?;
-    Ok(render::to_rgb8(r.width, r.height, &r.image))
+    let (w, h, image) = rasterizer.render_image(g, camera, opts)?;
+    Ok(render::to_rgb8(w, h, &image))
 }
 
 /// `model`'s pooled features of each image, in order.
@@ -188,7 +199,7 @@ pub fn decoder_gain(
 ) -> Result<Vec<f64>, render::RenderError> {
     let renders = cameras
         .iter()
-        .map(|c| render_rgb8(original, c, opts))
+        .map(|c| render_rgb8(original, c, opts, &Rasterizer::Cpu))
         .collect::<Result<Vec<_>, _>>()?;
     Ok(gain_of_renders(&renders, model))
 }
@@ -326,7 +337,7 @@ pub fn nuisance_features(
     opts: &RenderOptions,
     cfg: &ProjectionConfig,
 ) -> Result<Vec<Vec<f32>>, EmbedError> {
-    nuisance_samples(original, cams, None, model, opts, cfg)
+    nuisance_samples(original, cams, None, model, opts, cfg, &Rasterizer::Cpu)
 }
 
 /// [`nuisance_features`], reading the original's views from `renders` (its 8-bit renders
@@ -338,6 +349,7 @@ fn nuisance_samples(
     model: &WatermarkModel,
     opts: &RenderOptions,
     cfg: &ProjectionConfig,
+    rasterizer: &Rasterizer,
 ) -> Result<Vec<Vec<f32>>, EmbedError> {
     use crate::attack::model::ModelAttack;
     use crate::attack::real::RealAttack;
@@ -369,10 +381,15 @@ fn nuisance_samples(
         let img = if rng.uniform() < 0.5 {
             match renders {
                 Some(r) => r[k].clone(),
-                None => render_rgb8(original, &cams[k], opts)?,
+                None => render_rgb8(original, &cams[k], opts, rasterizer)?,
             }
         } else {
-            render_rgb8(&copies[rng.range_int(0, 3) as usize], &cams[k], opts)?
+            render_rgb8(
+                &copies[rng.range_int(0, 3) as usize],
+                &cams[k],
+                opts,
+                rasterizer,
+            )?
         };
         let noise = RealAttack::Noise {
             sigma: 0.1,
@@ -432,7 +449,7 @@ mod tests {
     ) -> Result<Vec<Vec<f32>>, render::RenderError> {
         let renders = cams
             .iter()
-            .map(|c| render_rgb8(g, c, opts))
+            .map(|c| render_rgb8(g, c, opts, &Rasterizer::Cpu))
             .collect::<Result<Vec<_>, _>>()?;
         Ok(features_of(model, &renders))
     }
@@ -586,6 +603,7 @@ mod tests {
                 matched: false,
                 ..cfg
             },
+            &Rasterizer::Cpu,
         )
         .unwrap();
         assert_eq!(
@@ -641,12 +659,15 @@ mod tests {
         let device = burn::tensor::Device::flex();
         let model = WatermarkModel::shipped(32, &device).unwrap();
         let opts = RenderOptions::default();
-        let p = fit_projection(&g, &train, &model, &opts, &cfg).unwrap();
+        let p = fit_projection(&g, &train, &model, &opts, &cfg, &Rasterizer::Cpu).unwrap();
         assert_eq!(
             (p.head_bits(), p.rank(), p.features()),
             (32, 0, model.decoder.feature_count())
         );
-        assert_eq!(p, fit_projection(&g, &train, &model, &opts, &cfg).unwrap());
+        assert_eq!(
+            p,
+            fit_projection(&g, &train, &model, &opts, &cfg, &Rasterizer::Cpu).unwrap()
+        );
         let nuisance = nuisance_features(&g, &train, &model, &opts, &cfg).unwrap();
         assert_eq!(nuisance.len(), 24);
         assert_ne!(nuisance[0], nuisance[1]);
@@ -676,6 +697,7 @@ mod tests {
             &model,
             &opts,
             &ProjectionConfig { seed: 1, ..cfg },
+            &Rasterizer::Cpu,
         )
         .unwrap();
         assert_ne!(other.head, p.head);

@@ -17,6 +17,7 @@ use super::sbag::Budget;
 use super::{EmbedConfig, plan};
 use crate::decoder::WatermarkModel;
 use crate::decoder::projection::ViewProjection;
+use crate::render::gpu::Rasterizer;
 use crate::render::{RenderError, RenderOptions};
 use crate::scene::{Camera, Gaussians};
 use crate::verify::message::to_hex;
@@ -302,7 +303,14 @@ pub fn embed(
         let mut plain = model.clone();
         plain.reference = None;
         plain.projection = None;
-        Some(fit_projection(g, cameras, &plain, &ro, &opts.projection)?)
+        Some(fit_projection(
+            g,
+            cameras,
+            &plain,
+            &ro,
+            &opts.projection,
+            &opts.finetune.rasterizer,
+        )?)
     } else {
         None
     };
@@ -315,7 +323,13 @@ pub fn embed(
         None => model,
     };
     let reference = if opts.reference {
-        Some(reference_logits(g, &views, model, &ro)?)
+        Some(reference_logits(
+            g,
+            &views,
+            model,
+            &ro,
+            &opts.finetune.rasterizer,
+        )?)
     } else {
         None
     };
@@ -417,11 +431,12 @@ pub fn reference_logits(
     views: &[View],
     model: &WatermarkModel,
     opts: &RenderOptions,
+    rasterizer: &Rasterizer,
 ) -> Result<Vec<f32>, EmbedError> {
     let mut plain = model.clone();
     plain.reference = None;
     Ok(super::finetune::views_logits(
-        original, views, &plain, opts,
+        original, views, &plain, opts, rasterizer,
     )?)
 }
 

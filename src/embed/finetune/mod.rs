@@ -565,7 +565,11 @@ pub fn finetune(
             && ((step - cfg.steps).is_multiple_of(cfg.check_every.max(1))
                 || step == cfg.steps + cfg.extra_steps)
         {
-            let c = ViewsCheck::new(step, &views_logits(&g, views, model, render_opts)?, message);
+            let c = ViewsCheck::new(
+                step,
+                &views_logits(&g, views, model, render_opts, &cfg.rasterizer)?,
+                message,
+            );
             check = Some(c);
             if c.matches == c.bits {
                 break;

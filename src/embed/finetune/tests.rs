@@ -207,14 +207,17 @@ fn the_fidelity_bound_holds_the_training_views_and_colour_only_keeps_geometry() 
 fn a_reference_centres_the_original_on_its_own_views() {
     let (g, views, opts) = setup();
     let m = model(8);
-    let r = crate::embed::pipeline::reference_logits(&g, &views, &m, &opts).unwrap();
+    let r = crate::embed::pipeline::reference_logits(&g, &views, &m, &opts, &Default::default())
+        .unwrap();
     assert_eq!(r.len(), 8);
     assert!(r.iter().any(|z| z.abs() > 1e-3), "{r:?}");
     let centred = m.clone().with_reference(r.clone());
-    let z = views_logits(&g, &views, &centred, &opts).unwrap();
+    let z = views_logits(&g, &views, &centred, &opts, &Default::default()).unwrap();
     assert!(z.iter().all(|v| v.abs() < 1e-4), "{z:?}");
     // Measured through an already-centred model, the reference is still the plain one.
-    let again = crate::embed::pipeline::reference_logits(&g, &views, &centred, &opts).unwrap();
+    let again =
+        crate::embed::pipeline::reference_logits(&g, &views, &centred, &opts, &Default::default())
+            .unwrap();
     assert_eq!(again, r);
 }
 
@@ -308,7 +311,7 @@ fn extra_steps_stop_once_the_training_views_decode_the_message() {
         [0.0; 5],
     );
     // What the scene already decodes: met at the first check, at step `steps`.
-    let decoded: Vec<bool> = views_logits(&g, &views, &m, &opts)
+    let decoded: Vec<bool> = views_logits(&g, &views, &m, &opts, &Default::default())
         .unwrap()
         .iter()
         .map(|&z| z > 0.0)
@@ -343,7 +346,7 @@ fn extra_steps_stop_once_the_training_views_decode_the_message() {
     assert_eq!(c.step, 8);
     assert!(c.matches < 8, "{c:?}");
     // The check decodes as a dispute does.
-    let z = views_logits(&missed.gaussians, &views, &m, &opts).unwrap();
+    let z = views_logits(&missed.gaussians, &views, &m, &opts, &Default::default()).unwrap();
     assert_eq!(c, ViewsCheck::new(8, &z, &opposite));
     // Without extra steps: the paper's fixed schedule, no check.
     let fixed = finetune(&g, &mk, &views, &m, &opposite, &config(2), |_| {

@@ -65,12 +65,13 @@ pub(crate) fn views_logits(
     views: &[View],
     model: &WatermarkModel,
     opts: &RenderOptions,
+    rasterizer: &Rasterizer,
 ) -> Result<Vec<f32>, FinetuneError> {
     let images = views
         .iter()
         .map(|v| {
-            let r = render::render(g, &v.camera, opts)?;
-            Ok(render::to_rgb8(r.width, r.height, &r.image))
+            let (w, h, image) = rasterizer.render_image(g, &v.camera, opts)?;
+            Ok(render::to_rgb8(w, h, &image))
         })
         .collect::<Result<Vec<_>, RenderError>>()?;
     Ok(decode_images(model, &images, &model.device().autodiff()).logits)
