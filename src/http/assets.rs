@@ -147,6 +147,44 @@ fn reservation(
     Ok(declared.read_bytes(len).saturating_add(cams))
 }
 
+/// Admits work that parses a scene holding about `need` bytes in memory (`what`: "checking this
+/// upload", "converting this scene"): 413 past the whole upload memory budget, 503 while that
+/// memory or every parsing slot stays taken. Both permits are held until the work ends.
+async fn admit_parse(
+    st: &AppState,
+    need: u64,
+    what: &str,
+) -> ApiResult<(
+    tokio::sync::OwnedSemaphorePermit,
+    tokio::sync::OwnedSemaphorePermit,
+)> {
+    let need_kib = need.div_ceil(1024);
+    let budget_kib = st.cfg.upload_memory_kib();
+    if need_kib > budget_kib {
+        return Err(ApiError::too_large(format!(
+            "{what} takes about {} MiB of memory; this server parses scenes within {} MiB \
+             (upload_memory_mb)",
+            need_kib.div_ceil(1024),
+            budget_kib / 1024
+        )));
+    }
+    let wait = std::time::Duration::from_millis(st.cfg.upload_wait_ms);
+    let memory = super::admit_many(
+        &st.upload_memory,
+        u32::try_from(need_kib).map_err(ApiError::internal)?,
+        wait,
+        "the memory for parsing scenes is in use by other uploads or conversions; retry shortly",
+    )
+    .await?;
+    let permit = super::admit(
+        &st.upload_slots,
+        wait,
+        "every scene parsing slot is busy; retry shortly",
+    )
+    .await?;
+    Ok((permit, memory))
+}
+
 /// Validates the spooled files with the scene and camera readers (`cameras`: the spooled file and
 /// the name the client gave it).
 fn check(
@@ -264,29 +302,7 @@ pub async fn upload(
         .await
         .map_err(ApiError::internal)??
     };
-    let need_kib = need.div_ceil(1024);
-    let budget_kib = st.cfg.upload_memory_kib();
-    if need_kib > budget_kib {
-        return Err(ApiError::too_large(format!(
-            "checking this upload takes about {} MiB of memory; this server checks uploads \
-             within {} MiB (upload_memory_mb)",
-            need_kib.div_ceil(1024),
-            budget_kib / 1024
-        )));
-    }
-    let memory = super::admit_many(
-        &st.upload_memory,
-        u32::try_from(need_kib).map_err(ApiError::internal)?,
-        std::time::Duration::from_millis(st.cfg.upload_wait_ms),
-        "the memory for checking uploads is in use by other uploads; retry shortly",
-    )
-    .await?;
-    let permit = super::admit(
-        &st.upload_slots,
-        std::time::Duration::from_millis(st.cfg.upload_wait_ms),
-        "every upload parsing slot is busy; retry shortly",
-    )
-    .await?;
+    let (permit, memory) = admit_parse(&st, need, "checking this upload").await?;
     let blobs = st.store.blobs().clone();
     let name = scene_name.clone();
     let (checked, pins, committed) = tokio::task::spawn_blocking(move || {
@@ -546,29 +562,7 @@ async fn convert(
         .await
         .map_err(ApiError::internal)??
     };
-    let need_kib = need.div_ceil(1024);
-    let budget_kib = st.cfg.upload_memory_kib();
-    if need_kib > budget_kib {
-        return Err(ApiError::too_large(format!(
-            "converting this scene takes about {} MiB of memory; this server converts within \
-             {} MiB (upload_memory_mb)",
-            need_kib.div_ceil(1024),
-            budget_kib / 1024
-        )));
-    }
-    let memory = super::admit_many(
-        &st.upload_memory,
-        u32::try_from(need_kib).map_err(ApiError::internal)?,
-        std::time::Duration::from_millis(st.cfg.upload_wait_ms),
-        "the memory for converting scenes is in use; retry shortly",
-    )
-    .await?;
-    let permit = super::admit(
-        &st.upload_slots,
-        std::time::Duration::from_millis(st.cfg.upload_wait_ms),
-        "every parsing slot is busy; retry shortly",
-    )
-    .await?;
+    let (permit, memory) = admit_parse(st, need, "converting this scene").await?;
     let path = path.to_path_buf();
     tokio::task::spawn_blocking(move || {
         let _held = (permit, memory);

@@ -250,13 +250,21 @@ pub fn read_as(bytes: &[u8], format: Format, limits: &Limits) -> Result<Gaussian
 /// quantised formats viewers load ([`compressed_ply::encode`](crate::scene::compressed_ply::encode),
 /// [`splat::encode`](crate::scene::splat::encode), [`spz::encode`](crate::scene::spz::encode):
 /// each documents what it rounds).
-pub fn write_scene<W: Write>(g: &Gaussians, format: Format, writer: W) -> Result<(), SceneError> {
-    match format {
-        Format::Ply => crate::scene::ply::write(g, writer),
-        Format::CompressedPly => crate::scene::compressed_ply::write(g, writer),
-        Format::Splat => crate::scene::splat::write(g, writer),
-        Format::Spz => crate::scene::spz::write(g, writer),
-    }
+pub fn write_scene<W: Write>(
+    g: &Gaussians,
+    format: Format,
+    mut writer: W,
+) -> Result<(), SceneError> {
+    use crate::scene::{compressed_ply, splat, spz};
+    g.validate()?;
+    let bytes = match format {
+        Format::Ply => return crate::scene::ply::write(g, writer),
+        Format::CompressedPly => compressed_ply::encode(g),
+        Format::Splat => splat::encode(g),
+        Format::Spz => spz::encode(g)?,
+    };
+    writer.write_all(&bytes).map_err(SceneError::IoPlain)?;
+    writer.flush().map_err(SceneError::IoPlain)
 }
 
 /// Writes `g` as an INRIA binary little-endian PLY that INRIA's loader, SuperSplat and Spark open

@@ -69,13 +69,6 @@ pub fn encode(g: &Gaussians) -> Vec<u8> {
     out
 }
 
-/// Writes `g` (validated first) as a `.splat` ([`encode`]).
-pub fn write<W: std::io::Write>(g: &Gaussians, mut w: W) -> Result<(), SceneError> {
-    g.validate()?;
-    w.write_all(&encode(g)).map_err(SceneError::IoPlain)?;
-    w.flush().map_err(SceneError::IoPlain)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -612,13 +612,6 @@ pub fn encode(g: &Gaussians) -> Result<Vec<u8>, SceneError> {
     Ok(gzip(&legacy_bytes(g, 3, true)))
 }
 
-/// Writes `g` (validated first) as an `.spz` ([`encode`]).
-pub fn write<W: std::io::Write>(g: &Gaussians, mut w: W) -> Result<(), SceneError> {
-    g.validate()?;
-    w.write_all(&encode(g)?).map_err(SceneError::IoPlain)?;
-    w.flush().map_err(SceneError::IoPlain)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
