@@ -379,23 +379,10 @@ pub fn encode(g: &Gaussians) -> Vec<u8> {
             .iter()
             .map(|&(lo, hi)| (lo as f32 as f64, hi as f32 as f64))
             .collect();
-        for k in [0, 1, 2] {
-            chunk_data.push(b[k].0 as f32);
-        }
-        for k in [0, 1, 2] {
-            chunk_data.push(b[k].1 as f32);
-        }
-        for k in [3, 4, 5] {
-            chunk_data.push(b[k].0 as f32);
-        }
-        for k in [3, 4, 5] {
-            chunk_data.push(b[k].1 as f32);
-        }
-        for k in [6, 7, 8] {
-            chunk_data.push(b[k].0 as f32);
-        }
-        for k in [6, 7, 8] {
-            chunk_data.push(b[k].1 as f32);
+        // Per attribute (position, scale, colour): its three minima, then its three maxima.
+        for attr in b.chunks_exact(3) {
+            chunk_data.extend(attr.iter().map(|&(lo, _)| lo as f32));
+            chunk_data.extend(attr.iter().map(|&(_, hi)| hi as f32));
         }
         for &i in idx.iter().take(n - ch * CHUNK_SIZE) {
             let p111011 = |v: [f64; 3]| {
