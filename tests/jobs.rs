@@ -166,6 +166,94 @@ async fn upload_watermark_download_render_verify_round_trip() {
     assert!(carriers > 0);
     assert!(sum.to_string().contains(&carriers.to_string()), "{sum}");
 
+    // The attribution viewer's pictures: PNGs of the asked size; the roles picture shows
+    // carriers in red; the pixel a Gaussian covers picks it with its record; bad views are 400s
+    // and an original has none.
+    let pic = |q: &str| format!("/v1/assets/{marked_id}/attribution/picture?{q}");
+    let r = t
+        .get(&k.auditor, &pic("layer=roles&view=1&views=4&size=96"))
+        .await;
+    assert_eq!(r.status(), StatusCode::OK);
+    assert_eq!(r.headers()["content-type"], "image/png");
+    let roles = image::load_from_memory(&r.bytes().await.unwrap())
+        .unwrap()
+        .to_rgb8();
+    assert_eq!(roles.dimensions(), (96, 96));
+    let red = roles.pixels().filter(|p| p[0] > 120 && p[2] < 60).count();
+    assert!(red > 0, "no carrier pixels");
+    for layer in ["view", "heat", "diff"] {
+        let r = t
+            .get(&k.owner, &pic(&format!("layer={layer}&size=64")))
+            .await;
+        assert_eq!(r.status(), StatusCode::OK, "{layer}");
+    }
+    // A carrier's pixel picks a Gaussian and its record; a corner picks the background.
+    let (x, y) = roles
+        .enumerate_pixels()
+        .find(|(_, _, p)| p[0] > 120 && p[2] < 60)
+        .map(|(x, y, _)| (x, y))
+        .unwrap();
+    let picked: Value = t
+        .get(
+            &k.auditor,
+            &format!("/v1/assets/{marked_id}/attribution/pick?view=1&views=4&size=96&x={x}&y={y}"),
+        )
+        .await
+        .json()
+        .await
+        .unwrap();
+    let index = picked["index"].as_u64().expect("a Gaussian") as usize;
+    assert!(index < marked.len(), "{picked}");
+    assert_eq!(picked["record"]["index"], index as u64, "{picked}");
+    let corner: Value = t
+        .get(
+            &k.auditor,
+            &format!("/v1/assets/{marked_id}/attribution/pick?view=1&views=4&size=96&x=0&y=0"),
+        )
+        .await
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(corner["index"], Value::Null, "{corner}");
+    for bad in ["layer=x", "size=4000", "view=4&views=4", "views=0"] {
+        let r = t.get(&k.owner, &pic(bad)).await;
+        assert_problem(r, StatusCode::BAD_REQUEST).await;
+    }
+    let r = t
+        .get(
+            &k.owner,
+            &format!("/v1/assets/{marked_id}/attribution/pick?view=0&x=5000&y=0"),
+        )
+        .await;
+    assert_problem(r, StatusCode::BAD_REQUEST).await;
+    let r = t
+        .get(&k.owner, &format!("/v1/assets/{id}/attribution/picture"))
+        .await;
+    assert_problem(r, StatusCode::NOT_FOUND).await;
+    // Another owner sees neither the pictures nor the assets in its list.
+    let stranger = t.key(&["owner"]).await;
+    let r = t.get(&stranger, &pic("layer=roles")).await;
+    assert_problem(r, StatusCode::NOT_FOUND).await;
+    let theirs: Value = t.get(&stranger, "/v1/assets").await.json().await.unwrap();
+    assert_eq!(theirs["items"].as_array().unwrap().len(), 0, "{theirs}");
+    let mine: Value = t
+        .get(&k.owner, "/v1/assets?limit=1")
+        .await
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(mine["items"][0]["id"], marked_id, "newest first: {mine}");
+    let rest: Value = t
+        .get(
+            &k.owner,
+            &format!("/v1/assets?limit=1&cursor={}", mine["next_cursor"]),
+        )
+        .await
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(rest["items"][0]["id"], id.as_str(), "{rest}");
+
     // The audit log holds every step and its chain verifies.
     let audit: Value = t
         .get(&k.auditor, &format!("/v1/audit?asset_id={id}&limit=1000"))

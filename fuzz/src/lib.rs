@@ -109,7 +109,7 @@ pub fn job_options_target(data: &[u8]) {
 /// parsed as axum does, then checked as the handlers do; what passes is a usable filter.
 pub fn query_target(data: &[u8]) {
     use axum::extract::Query;
-    use splatmark::http::{assets::AttributionQuery, audit::AuditQuery};
+    use splatmark::http::{attribution::AttributionQuery, audit::AuditQuery};
     let Ok(s) = std::str::from_utf8(data) else {
         return;
     };
@@ -128,7 +128,7 @@ pub fn query_target(data: &[u8]) {
     if let Ok(Query(q)) = Query::<AttributionQuery>::try_from_uri(&uri)
         && let Ok(page) = q.into_page()
     {
-        assert!((1..=splatmark::http::assets::MAX_PAGE).contains(&page.limit));
+        assert!((1..=splatmark::http::attribution::MAX_PAGE).contains(&page.limit));
     }
 }
 

@@ -13,9 +13,8 @@ use clap::Args;
 use super::progress::{Progress, ProgressMode};
 use super::{LimitArgs, ViewArgs, load, safe_name};
 use crate::embed::attribution::{AttributionRecord, read_jsonl};
-use crate::embed::sbag::Role;
-use crate::render::{RenderOptions, render, to_rgb8};
-use crate::scene::{Gaussians, SH_C0};
+use crate::embed::explain::{Layer, Legend, Pictures};
+use crate::scene::Gaussians;
 
 #[derive(Args, Debug)]
 pub(crate) struct ExplainArgs {
@@ -40,30 +39,12 @@ pub(crate) struct ExplainArgs {
     limits: LimitArgs,
 }
 
-/// Role colours (linear RGB): carriers, compensators, untouched.
-const CARRIER: [f32; 3] = [0.95, 0.15, 0.1];
-const COMPENSATOR: [f32; 3] = [0.1, 0.35, 0.95];
-const UNTOUCHED: [f32; 3] = [0.55, 0.55, 0.55];
-
-/// `g` with every Gaussian's view-independent colour set to `colour(i)` and its
-/// view-dependent colour removed.
-fn recoloured(g: &Gaussians, colour: impl Fn(usize) -> [f32; 3]) -> Gaussians {
-    let mut c = g.clone();
-    for i in 0..c.len() {
-        c.sh_dc[i] = colour(i).map(|v| (v - 0.5) / SH_C0);
+/// The file name part of a layer (`diff10`: the difference is magnified ×10).
+fn file_kind(layer: Layer) -> &'static str {
+    match layer {
+        Layer::Diff => "diff10",
+        l => l.as_str(),
     }
-    c.sh_rest.iter_mut().for_each(|v| *v = 0.0);
-    c
-}
-
-/// A black → red → yellow → white ramp of `t` in [0, 1].
-fn heat(t: f32) -> [f32; 3] {
-    let t = t.clamp(0.0, 1.0) * 3.0;
-    [
-        t.min(1.0),
-        (t - 1.0).clamp(0.0, 1.0),
-        (t - 2.0).clamp(0.0, 1.0),
-    ]
 }
 
 /// The records, checked against the scene: one per Gaussian, in index order.
@@ -97,67 +78,27 @@ pub(crate) fn explain_cmd(a: &ExplainArgs, progress: ProgressMode) -> Result<()>
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("cannot create {}", a.out.display()))?;
 
-    let count = |role: Role| recs.iter().filter(|r| r.role == role).count();
-    let shares: Vec<f32> = recs
-        .iter()
-        .map(|r| r.wm_grad_share.unwrap_or(0.0))
+    let pictures = Pictures::new(g, recs, original)?;
+    let legend = pictures.legend();
+    let layers: Vec<Layer> = Layer::ALL
+        .into_iter()
+        .filter(|&l| l != Layer::Diff || pictures.has_original())
         .collect();
-    let carrier_share: f64 = recs
-        .iter()
-        .zip(&shares)
-        .filter(|(r, _)| r.role == Role::Carrier)
-        .map(|(_, &s)| f64::from(s))
-        .sum();
-    // The heat scale: white at the 99th percentile of the non-zero shares (a few Gaussians
-    // with most of the gradient would otherwise leave the rest black).
-    let mut nonzero: Vec<f32> = shares.iter().copied().filter(|&s| s > 0.0).collect();
-    nonzero.sort_by(f32::total_cmp);
-    let top = nonzero
-        .get(nonzero.len().saturating_sub(1) * 99 / 100)
-        .copied()
-        .unwrap_or(1.0)
-        .max(f32::MIN_POSITIVE);
-    let roles = recoloured(&g, |i| match recs[i].role {
-        Role::Carrier => CARRIER,
-        Role::Compensator => COMPENSATOR,
-        _ => UNTOUCHED,
-    });
-    let heatmap = recoloured(&g, |i| heat(shares[i] / top));
-    let black = RenderOptions {
-        background: [0.0; 3],
-        ..RenderOptions::default()
-    };
 
     let mut rows = String::new();
     let mut bar = Progress::new(progress);
     bar.phase("explain", cams.len() as u64);
     for (k, cam) in cams.iter().enumerate() {
         let stem = format!("{:03}_{}", k, safe_name(&cam.name));
-        let save = |kind: &str, w: u32, h: u32, px: &[[f32; 3]]| -> Result<String> {
-            let name = format!("{stem}_{kind}.png");
-            to_rgb8(w, h, px)
+        let (w, h) = (cam.width, cam.height);
+        let mut cells = Vec::with_capacity(layers.len());
+        for &layer in &layers {
+            let name = format!("{stem}_{}.png", file_kind(layer));
+            pictures
+                .draw_rgb8(layer, cam)?
                 .save(a.out.join(&name))
                 .with_context(|| format!("cannot write {name}"))?;
-            Ok(name)
-        };
-        let marked = render(&g, cam, &black)?;
-        let (w, h) = (marked.width, marked.height);
-        let mut cells = vec![save("view", w, h, &marked.image)?];
-        cells.push(save("roles", w, h, &render(&roles, cam, &black)?.image)?);
-        cells.push(save("heat", w, h, &render(&heatmap, cam, &black)?.image)?);
-        if let Some(o) = &original {
-            let before = render(o, cam, &black)?;
-            let diff: Vec<[f32; 3]> = marked
-                .image
-                .iter()
-                .zip(&before.image)
-                .map(|(p, q)| {
-                    [0, 1, 2].map(|c| {
-                        ((p[c].clamp(0.0, 1.0) - q[c].clamp(0.0, 1.0)).abs() * 10.0).min(1.0)
-                    })
-                })
-                .collect();
-            cells.push(save("diff10", w, h, &diff)?);
+            cells.push(name);
         }
         rows += &format!(
             "<tr><th>{}</th>{}</tr>\n",
@@ -174,7 +115,15 @@ pub(crate) fn explain_cmd(a: &ExplainArgs, progress: ProgressMode) -> Result<()>
         bar.step(k as u64 + 1, &line);
     }
     bar.finish();
-    let (carriers, compensators) = (count(Role::Carrier), count(Role::Compensator));
+    let Legend {
+        gaussians,
+        carriers,
+        compensators,
+        untouched,
+        carrier_share,
+        ..
+    } = legend;
+    let has_original = pictures.has_original();
     let html = format!(
         "<!doctype html>\n<meta charset=\"utf-8\">\n<title>splatmark explain: {scene}</title>\n\
          <style>body{{font-family:sans-serif}}td,th{{padding:4px}}img{{image-rendering:pixelated}}</style>\n\
@@ -184,15 +133,14 @@ pub(crate) fn explain_cmd(a: &ExplainArgs, progress: ProgressMode) -> Result<()>
          (black → red → yellow → white, linear, white at the 99th percentile).{diff}</p>\n\
          <table>\n<tr><th>view</th><th>render</th><th>roles</th><th>watermark gradient</th>{diffcol}</tr>\n{rows}</table>\n",
         scene = html_escape(&a.scene.display().to_string()),
-        n = g.len(),
-        untouched = g.len() - carriers - compensators,
+        n = gaussians,
         share = 100.0 * carrier_share,
-        diff = if original.is_some() {
+        diff = if has_original {
             " The last column is |watermarked − original| × 10."
         } else {
             ""
         },
-        diffcol = if original.is_some() {
+        diffcol = if has_original {
             "<th>difference ×10</th>"
         } else {
             ""
@@ -204,7 +152,7 @@ pub(crate) fn explain_cmd(a: &ExplainArgs, progress: ProgressMode) -> Result<()>
         "{}",
         serde_json::json!({
             "views": cams.len(),
-            "gaussians": g.len(),
+            "gaussians": gaussians,
             "carriers": carriers,
             "compensators": compensators,
             "carrier_share": carrier_share,

@@ -23,6 +23,7 @@
 pub mod attribution;
 pub mod calibrate;
 pub mod experts;
+pub mod explain;
 pub mod finetune;
 pub mod knn;
 pub mod mask;

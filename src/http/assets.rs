@@ -1,5 +1,5 @@
 //! `/v1/assets`: streaming upload (validated by the scene reader before anything is stored),
-//! metadata, download, and the per-Gaussian attribution of watermarked assets.
+//! listing, metadata and download (in any scene format).
 
 use std::sync::atomic::Ordering;
 
@@ -16,10 +16,9 @@ use uuid::Uuid;
 use super::AppState;
 use super::auth::Caller;
 use super::error::{ApiError, ApiResult};
-use crate::embed::sbag::Role;
 use crate::scene::camera::read_cameras_bytes;
 use crate::scene::format::{detect_format, read_as};
-use crate::scene::{Format, Limits, SceneError, cost};
+use crate::scene::{Format, Gaussians, Limits, SceneError, cost};
 use crate::store::{Asset, AssetKind, AuditEntry, NewAsset, Scope};
 
 /// A multipart field's failure as a client error.
@@ -394,7 +393,7 @@ pub(super) async fn readable(st: &AppState, caller: &Caller, id: Uuid) -> ApiRes
     Ok(a)
 }
 
-fn parse_id(s: &str) -> ApiResult<Uuid> {
+pub(super) fn parse_id(s: &str) -> ApiResult<Uuid> {
     s.parse().map_err(|_| ApiError::not_found("asset"))
 }
 
@@ -529,6 +528,41 @@ pub async fn file(
     Ok(r)
 }
 
+/// Bytes of memory parsing the stored scene at `path` (in `from`) takes, plus `per_gaussian`
+/// bytes for each of its Gaussians; 413 past `max_gaussians`.
+async fn parse_need(
+    path: &std::path::Path,
+    from: Format,
+    limits: Limits,
+    per_gaussian: u64,
+) -> ApiResult<u64> {
+    let path = path.to_path_buf();
+    tokio::task::spawn_blocking(move || {
+        use std::io::Read;
+        let len = std::fs::metadata(&path).map_err(ApiError::internal)?.len();
+        let mut prefix = Vec::new();
+        std::fs::File::open(&path)
+            .and_then(|f| f.take(cost::PROBE_BYTES as u64).read_to_end(&mut prefix))
+            .map_err(ApiError::internal)?;
+        let declared = cost::declared(&prefix, len, Some(from.extension()))?;
+        limits.check_count(declared.count)?;
+        Ok::<_, ApiError>(
+            declared
+                .read_bytes(len)
+                .saturating_add(declared.count.saturating_mul(per_gaussian)),
+        )
+    })
+    .await
+    .map_err(ApiError::internal)?
+}
+
+fn scene_limits(st: &AppState) -> Limits {
+    Limits {
+        max_gaussians: st.cfg.max_gaussians,
+        max_file_bytes: None,
+    }
+}
+
 /// The stored scene at `path` (in `from`) written in `to`, within the upload memory budget.
 async fn convert(
     st: &AppState,
@@ -536,32 +570,8 @@ async fn convert(
     from: Format,
     to: Format,
 ) -> ApiResult<Vec<u8>> {
-    let limits = Limits {
-        max_gaussians: st.cfg.max_gaussians,
-        max_file_bytes: None,
-    };
-    let need = {
-        let (path, limits) = (path.to_path_buf(), limits);
-        tokio::task::spawn_blocking(move || {
-            use std::io::Read;
-            let len = std::fs::metadata(&path).map_err(ApiError::internal)?.len();
-            let mut prefix = Vec::new();
-            std::fs::File::open(&path)
-                .and_then(|f| f.take(cost::PROBE_BYTES as u64).read_to_end(&mut prefix))
-                .map_err(ApiError::internal)?;
-            let declared = cost::declared(&prefix, len, Some(from.extension()))?;
-            limits.check_count(declared.count)?;
-            Ok::<_, ApiError>(
-                declared.read_bytes(len).saturating_add(
-                    declared
-                        .count
-                        .saturating_mul(MAX_WRITTEN_BYTES_PER_GAUSSIAN),
-                ),
-            )
-        })
-        .await
-        .map_err(ApiError::internal)??
-    };
+    let limits = scene_limits(st);
+    let need = parse_need(path, from, limits, MAX_WRITTEN_BYTES_PER_GAUSSIAN).await?;
     let (permit, memory) = admit_parse(st, need, "converting this scene").await?;
     let path = path.to_path_buf();
     tokio::task::spawn_blocking(move || {
@@ -582,90 +592,64 @@ async fn convert(
     .map_err(ApiError::internal)?
 }
 
+/// Permits of the upload memory budget and a parsing slot, held while their work lasts.
+pub(super) type Admitted = (
+    tokio::sync::OwnedSemaphorePermit,
+    tokio::sync::OwnedSemaphorePermit,
+);
+
+/// The scenes of `assets`, parsed within the upload memory budget and one parsing slot (`what`
+/// names the work in a 413 / 503), with the permits for that memory plus `per_gaussian` bytes
+/// per Gaussian of further work the caller does while it holds them.
+pub(super) async fn load_scenes(
+    st: &AppState,
+    assets: &[&Asset],
+    per_gaussian: u64,
+    what: &str,
+) -> ApiResult<(Vec<Gaussians>, Admitted)> {
+    let limits = scene_limits(st);
+    let mut files = Vec::with_capacity(assets.len());
+    let mut need = 0u64;
+    for a in assets {
+        let from = Format::parse(&a.format)
+            .ok_or_else(|| ApiError::internal(format!("stored format {:?}", a.format)))?;
+        let path = st.store.blobs().path(&a.sha256)?;
+        need = need.saturating_add(parse_need(&path, from, limits, per_gaussian).await?);
+        files.push((path, from));
+    }
+    let held = admit_parse(st, need, what).await?;
+    tokio::task::spawn_blocking(move || {
+        let mut scenes = Vec::with_capacity(files.len());
+        for (path, from) in files {
+            let bytes = std::fs::read(&path).map_err(ApiError::internal)?;
+            scenes.push(read_as(&bytes, from, &limits)?);
+        }
+        Ok((scenes, held))
+    })
+    .await
+    .map_err(ApiError::internal)?
+}
+
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
-pub struct AttributionQuery {
-    role: Option<String>,
-    cursor: Option<u32>,
+pub struct ListQuery {
+    cursor: Option<i64>,
     limit: Option<u32>,
 }
 
-/// Largest attribution page.
-pub const MAX_PAGE: u32 = 10_000;
-
-/// One page of an attribution listing, as a client asked for it.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct AttributionPage {
-    /// Only the Gaussians of this role.
-    pub role: Option<Role>,
-    /// Continue after this Gaussian index.
-    pub cursor: Option<u32>,
-    /// At most this many records, 1 to [`MAX_PAGE`].
-    pub limit: u32,
-}
-
-impl AttributionQuery {
-    /// The page this query asks for, checked as the handler checks it (400 for an unknown role
-    /// or a limit outside 1 to [`MAX_PAGE`]).
-    pub fn into_page(self) -> ApiResult<AttributionPage> {
-        let role = match self.role.as_deref() {
-            None => None,
-            Some("carrier") => Some(Role::Carrier),
-            Some("compensator") => Some(Role::Compensator),
-            Some("untouched") => Some(Role::Untouched),
-            Some(r) => {
-                return Err(ApiError::bad_request(format!(
-                    "role '{r}': expected carrier, compensator or untouched"
-                )));
-            }
-        };
-        let limit = self.limit.unwrap_or(1000);
-        if !(1..=MAX_PAGE).contains(&limit) {
-            return Err(ApiError::bad_request(format!(
-                "limit must be 1 to {MAX_PAGE}"
-            )));
-        }
-        Ok(AttributionPage {
-            role,
-            cursor: self.cursor,
-            limit,
-        })
-    }
-}
-
-async fn watermarked(st: &AppState, caller: &Caller, id: &str) -> ApiResult<Asset> {
-    let a = readable(st, caller, parse_id(id)?).await?;
-    if a.kind != AssetKind::Watermarked {
-        return Err(ApiError::not_found(
-            "attribution (this asset is an original; its watermarked versions have one)",
-        ));
-    }
-    Ok(a)
-}
-
-/// `GET /v1/assets/{id}/attribution?role=&cursor=&limit=` — one record per Gaussian of a
-/// watermarked asset, in index order; `next_cursor` continues.
-pub async fn attribution(
+/// `GET /v1/assets?cursor=&limit=` — the caller's assets newest first (an auditor's or admin's:
+/// everyone's); `next_cursor` continues.
+pub async fn list(
     State(st): State<AppState>,
     caller: Caller,
-    Path(id): Path<String>,
-    Query(q): Query<AttributionQuery>,
+    Query(q): Query<ListQuery>,
 ) -> ApiResult<Response> {
-    let a = watermarked(&st, &caller, &id).await?;
-    let page = q.into_page()?;
-    let (items, next) = st
-        .store
-        .attribution_page(a.id, page.role, page.cursor, page.limit)
-        .await?;
+    let limit = q.limit.unwrap_or(50);
+    if !(1..=1000).contains(&limit) {
+        return Err(ApiError::bad_request("limit must be 1 to 1000"));
+    }
+    let me = caller.id();
+    let owner = (!caller.has(Scope::Auditor)).then_some(me.as_str());
+    let (items, next) = st.store.list_assets(owner, q.cursor, limit).await?;
     Ok(Json(json!({"items": items, "next_cursor": next})).into_response())
-}
-
-/// `GET /v1/assets/{id}/attribution/summary`.
-pub async fn attribution_summary(
-    State(st): State<AppState>,
-    caller: Caller,
-    Path(id): Path<String>,
-) -> ApiResult<Response> {
-    let a = watermarked(&st, &caller, &id).await?;
-    Ok(Json(st.store.attribution_summary(a.id).await?).into_response())
 }

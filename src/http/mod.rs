@@ -2,8 +2,10 @@
 //! as problem+json), bearer API keys with scopes ([`auth`]).
 
 pub mod assets;
+pub mod attribution;
 pub mod audit;
 pub mod auth;
+pub mod console;
 pub mod error;
 pub mod health;
 pub mod jobs;
@@ -176,11 +178,14 @@ async fn security_headers(req: Request, next: Next) -> Response {
 /// Every route (method, path) — the OpenAPI spec must list exactly these (tested).
 pub const ROUTES: &[(&str, &str)] = &[
     ("post", "/v1/assets"),
+    ("get", "/v1/assets"),
     ("get", "/v1/assets/{id}"),
     ("get", "/v1/assets/{id}/file"),
     ("post", "/v1/assets/{id}/watermark"),
     ("get", "/v1/assets/{id}/attribution"),
     ("get", "/v1/assets/{id}/attribution/summary"),
+    ("get", "/v1/assets/{id}/attribution/picture"),
+    ("get", "/v1/assets/{id}/attribution/pick"),
     ("get", "/v1/jobs/{id}"),
     ("delete", "/v1/jobs/{id}"),
     ("post", "/v1/verify"),
@@ -194,6 +199,13 @@ pub const ROUTES: &[(&str, &str)] = &[
     ("get", "/openapi.json"),
 ];
 
+/// The web console's pages ([`console`]): not part of the API, so not in its spec.
+pub const CONSOLE_ROUTES: &[(&str, &str)] = &[
+    ("get", "/"),
+    ("get", "/console/app.js"),
+    ("get", "/console/app.css"),
+];
+
 /// The router with its middleware.
 pub fn router(state: AppState) -> Router {
     let metrics = state.metrics.clone();
@@ -201,16 +213,23 @@ pub fn router(state: AppState) -> Router {
         .route(
             "/v1/assets",
             // Uploads are counted against `max_upload_bytes` while they stream.
-            post(assets::upload).layer(DefaultBodyLimit::disable()),
+            post(assets::upload)
+                .layer(DefaultBodyLimit::disable())
+                .get(assets::list),
         )
         .route("/v1/assets/{id}", get(assets::get_one))
         .route("/v1/assets/{id}/file", get(assets::file))
         .route("/v1/assets/{id}/watermark", post(jobs::watermark))
-        .route("/v1/assets/{id}/attribution", get(assets::attribution))
+        .route("/v1/assets/{id}/attribution", get(attribution::attribution))
         .route(
             "/v1/assets/{id}/attribution/summary",
-            get(assets::attribution_summary),
+            get(attribution::attribution_summary),
         )
+        .route(
+            "/v1/assets/{id}/attribution/picture",
+            get(attribution::picture),
+        )
+        .route("/v1/assets/{id}/attribution/pick", get(attribution::pick))
         .route("/v1/jobs/{id}", get(jobs::get_one).delete(jobs::cancel))
         .route(
             "/v1/verify",
@@ -224,6 +243,9 @@ pub fn router(state: AppState) -> Router {
         .route("/readyz", get(health::readyz))
         .route("/metrics", get(health::metrics))
         .route("/openapi.json", get(openapi::json))
+        .route("/", get(console::index))
+        .route("/console/app.js", get(console::script))
+        .route("/console/app.css", get(console::style))
         .fallback(|| async { error::ApiError::not_found("route") })
         .with_state(state)
         .layer(middleware::from_fn_with_state(metrics, count))

@@ -186,6 +186,31 @@ impl<T: Real> Replay<T> {
         Ok(image)
     }
 
+    /// The Gaussian with the largest compositing weight α·T at pixel (`x`, `y`) and that
+    /// weight; `None` where no Gaussian contributes (or outside the image).
+    pub fn strongest_at(&self, x: usize, y: usize) -> Option<(u32, T)> {
+        if x >= self.width || y >= self.height {
+            return None;
+        }
+        let t = (y / TILE) * self.tiles_x + x / TILE;
+        let local = ((y % TILE) * TILE + x % TILE) as u8;
+        let (r0, r1) = self.tile_runs[t];
+        let mut k = self.tile_starts[t] as usize;
+        let mut best: Option<(u32, T)> = None;
+        for &(splat, end) in &self.runs[r0 as usize..r1 as usize] {
+            for (p, &w) in self.pix[k..end as usize]
+                .iter()
+                .zip(&self.w[k..end as usize])
+            {
+                if *p == local && best.is_none_or(|(_, b)| w > b) {
+                    best = Some((self.ids[splat as usize], w));
+                }
+            }
+            k = end as usize;
+        }
+        best
+    }
+
     /// ∂L/∂(SH coefficients) of `g` from `d_image` (∂L/∂pixel, row-major RGB): a scene-shaped
     /// gradient whose `sh_dc` and `sh_rest` are filled and whose geometry entries are zero
     /// (the geometry is held fixed; its gradient is not computed).

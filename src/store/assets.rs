@@ -212,6 +212,39 @@ impl Store {
         row.as_ref().map(decode_asset).transpose()
     }
 
+    /// Assets newest first — `owner`'s, or everyone's when `None` — after the cursor `before`
+    /// (a value this function returned), at most `limit` (1 to 1 000). The second value is the
+    /// cursor of the next page (`None` at the end).
+    pub async fn list_assets(
+        &self,
+        owner: Option<&str>,
+        before: Option<i64>,
+        limit: u32,
+    ) -> Result<(Vec<Asset>, Option<i64>)> {
+        let limit = i64::from(limit.clamp(1, 1000));
+        let sql = "SELECT id, owner, kind, parent_id, source_job_id, sha256, size, format, \
+                   file_name, gaussians, sh_degree, cameras_sha256, cameras_format, created_at, \
+                   seq FROM assets WHERE (? IS NULL OR owner = ?) AND seq < ? \
+                   ORDER BY seq DESC LIMIT ?";
+        let rows = sqlx::query(sql)
+            .bind(owner)
+            .bind(owner)
+            .bind(before.unwrap_or(i64::MAX))
+            .bind(limit + 1)
+            .fetch_all(&self.pool)
+            .await?;
+        let more = rows.len() as i64 > limit;
+        let rows = &rows[..rows.len().min(limit as usize)];
+        let next = if more {
+            rows.last()
+                .map(|r| r.try_get::<i64, _>("seq"))
+                .transpose()?
+        } else {
+            None
+        };
+        Ok((rows.iter().map(decode_asset).collect::<Result<_>>()?, next))
+    }
+
     /// The watermarked assets made from `original`, oldest first.
     pub async fn watermarked_of(&self, original: Uuid) -> Result<Vec<Asset>> {
         let sql = "SELECT id, owner, kind, parent_id, source_job_id, sha256, size, format, \
