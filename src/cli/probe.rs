@@ -462,6 +462,9 @@ pub struct QualityArgs {
     /// views stay the same.
     #[arg(long)]
     train_views: Option<usize>,
+    /// Elevations of those views in degrees (comma separated; default −20,10,35,60, the CLI's).
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    train_elevations: Option<Vec<f32>>,
     /// Embedding options (JSON, as `embed --config`); default: the defaults a user gets.
     #[arg(long)]
     config: Option<PathBuf>,
@@ -505,6 +508,9 @@ pub fn bench_cmd(c: &BenchCommand) -> Result<()> {
     if let Some(n) = a.train_views {
         anyhow::ensure!(n >= 2, "--train-views must be at least 2");
         o.train_views = n;
+    }
+    if let Some(e) = &a.train_elevations {
+        o.train_elevations = e.clone();
     }
     if let Some(p) = &a.config {
         let bytes = std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?;

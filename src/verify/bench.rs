@@ -7,7 +7,7 @@
 //! its test cameras), and each message length:
 //!
 //! 1. **Training views as the CLI makes them**: `splatmark embed`'s defaults — `train_views`
-//!    orbit views (elevations −20°, 10°, 35°) at `size`², every `holdout_every`-th held out by
+//!    orbit views (elevations −20°, 10°, 35°, 60°) at `size`², every `holdout_every`-th held out by
 //!    the CLI — or, for a scene with its own cameras (udon), every camera but every
 //!    `holdout_every_cameras`-th.
 //! 2. **Embedding with [`EmbedOptions::default`]** and a uniformly random payload (what the
@@ -86,6 +86,8 @@ pub struct QualityOptions {
     pub size: u32,
     /// Orbit views the CLI trains on (its default 24) …
     pub train_views: usize,
+    /// Their elevations (view `i` at `train_elevations[i % len]`; the orbit's default).
+    pub train_elevations: Vec<f32>,
     /// … of which it holds out every n-th (its default 8).
     pub holdout_every: usize,
     /// Cameras of a scene's own set held out for evaluation: every n-th.
@@ -128,6 +130,7 @@ impl QualityOptions {
             bits: vec![32, 48, 64],
             size: crate::config::ViewDefaults::default().width,
             train_views: 24,
+            train_elevations: OrbitOptions::default().elevations_deg,
             holdout_every: 8,
             holdout_every_cameras: 4,
             eval_views: 12,
@@ -302,6 +305,7 @@ pub fn views(
     }
     let train_orbit = OrbitOptions {
         count: opts.train_views,
+        elevations_deg: opts.train_elevations.clone(),
         width: opts.size,
         height: opts.size,
         ..OrbitOptions::default()
