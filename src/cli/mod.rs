@@ -33,8 +33,10 @@ use std::process::ExitCode;
 struct Cli {
     #[command(subcommand)]
     command: Command,
-    /// Progress of long commands (embed, render, explain) on stderr: auto (a bar on a terminal,
-    /// nothing otherwise), bar, lines (plain text, for logs), json (one object per line), none.
+    /// Progress of long commands (embed, render, explain, decoder train, bench) on stderr: auto
+    /// (a bar on a terminal, nothing otherwise), bar, lines (plain text, for logs), json (one
+    /// object per line), none. `decoder train` and `bench` print their log lines in every mode
+    /// (above the bar; as `{"message"}` objects in json).
     #[arg(long, global = true, value_enum, default_value = "auto")]
     progress: progress::ProgressMode,
 }
@@ -494,7 +496,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Convert { scene, out, limits } => convert(&scene, &out, &limits),
         Command::Decoder {
             command: DecoderCommand::Train(args),
-        } => train_cmd(&args),
+        } => train_cmd(&args, cli.progress),
         Command::Decoder {
             command: DecoderCommand::Eval(args),
         } => eval_cmd(&args),
@@ -508,7 +510,7 @@ fn run(cli: Cli) -> Result<()> {
             command: DecoderCommand::TrainOpt(args),
         } => probe::train_opt_cmd(&args),
         Command::Fit(args) => fit::fit_cmd(&args),
-        Command::Bench { command } => probe::bench_cmd(&command),
+        Command::Bench { command } => probe::bench_cmd(&command, cli.progress),
         Command::Decode(args) => decode_cmd(&args),
         Command::Embed(args) => embed::embed_cmd(&args, cli.progress),
         Command::Verify(args) => embed::verify_cmd(&args),
@@ -520,7 +522,7 @@ fn run(cli: Cli) -> Result<()> {
     }
 }
 
-fn train_cmd(a: &TrainArgs) -> Result<()> {
+fn train_cmd(a: &TrainArgs, progress: progress::ProgressMode) -> Result<()> {
     let base = match &a.config {
         Some(p) => {
             let text = std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?;
@@ -580,13 +582,27 @@ fn train_cmd(a: &TrainArgs) -> Result<()> {
             c.eval.repeats = r;
         }
     };
+    let bar = std::cell::RefCell::new(progress::Progress::new(progress));
+    let mut total = 0;
+    let mut on_step = |step: usize, steps: usize| {
+        let mut b = bar.borrow_mut();
+        if steps != total {
+            total = steps;
+            b.phase("train", steps as u64);
+        }
+        b.step(step as u64, "");
+    };
     let options = RunOptions {
         resume: a.resume,
         overrides: &overrides,
         command: Some(command_line()),
         init: a.init.as_deref(),
+        on_step: Some(&mut on_step),
     };
-    let sidecar = train::run(base, &a.images, &a.out, options, &mut std::io::stderr())?;
+    let mut log = progress::LogLines::new(&bar);
+    let sidecar = train::run(base, &a.images, &a.out, options, &mut log)?;
+    std::io::Write::flush(&mut log)?;
+    bar.borrow_mut().finish();
     if let Some(eval) = sidecar.record.as_ref().and_then(|r| r.held_out.as_ref()) {
         println!("{}", serde_json::to_string_pretty(eval)?);
     }

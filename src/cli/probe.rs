@@ -375,7 +375,7 @@ fn fit_cache(explicit: Option<&PathBuf>) -> Result<PathBuf> {
     Ok(base.join("fits"))
 }
 
-fn paper_cmd(a: &PaperArgs) -> Result<()> {
+fn paper_cmd(a: &PaperArgs, progress: super::progress::ProgressMode) -> Result<()> {
     use crate::verify::paper::{self, PaperOptions};
     let cache = fit_cache(a.cache.as_ref())?;
     let mut o = if a.quick {
@@ -415,7 +415,9 @@ fn paper_cmd(a: &PaperArgs) -> Result<()> {
     }
     o.fresh = a.fresh;
     let device = DeviceChoice::Flex.device().autodiff();
-    let report = paper::run(&o, &device, &mut |line| eprintln!("{line}"))?;
+    let mut log = super::progress::BenchProgress::new(progress);
+    let report = paper::run(&o, &device, &mut log)?;
+    log.finish();
     let json = serde_json::to_string_pretty(&report)?;
     if let Some(out) = &a.out {
         std::fs::write(out, &json).with_context(|| format!("cannot write {}", out.display()))?;
@@ -481,11 +483,11 @@ pub struct QualityArgs {
     markdown: Option<PathBuf>,
 }
 
-pub fn bench_cmd(c: &BenchCommand) -> Result<()> {
+pub fn bench_cmd(c: &BenchCommand, progress: super::progress::ProgressMode) -> Result<()> {
     use crate::verify::bench::{self, QualityOptions};
     let a = match c {
         BenchCommand::Quality(a) => a,
-        BenchCommand::Paper(a) => return paper_cmd(a),
+        BenchCommand::Paper(a) => return paper_cmd(a, progress),
     };
     let mut o = if a.quick {
         QualityOptions::quick(a.scenes.clone())
@@ -520,7 +522,9 @@ pub fn bench_cmd(c: &BenchCommand) -> Result<()> {
     o.weights_dir = a.weights_dir.clone();
     o.seed = a.seed;
     let device = DeviceChoice::Flex.device().autodiff();
-    let report = bench::run(&o, &device, &mut |line| eprintln!("{line}"))?;
+    let mut log = super::progress::BenchProgress::new(progress);
+    let report = bench::run(&o, &device, &mut log)?;
+    log.finish();
     let json = serde_json::to_string_pretty(&report)?;
     if let Some(out) = &a.out {
         std::fs::write(out, &json).with_context(|| format!("cannot write {}", out.display()))?;

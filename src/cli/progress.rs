@@ -136,6 +136,16 @@ impl Progress {
         }
     }
 
+    /// A log line a command has always printed (a training's settings, its periodic lines,
+    /// checkpoints): above the bar, as a `{"message"}` in JSON, and plain on stderr otherwise —
+    /// also when progress is off, so logs of background runs keep them.
+    pub(crate) fn log_line(&self, text: &str) {
+        match self.mode {
+            ProgressMode::Bar | ProgressMode::Json => self.println(text),
+            _ => eprintln!("{text}"),
+        }
+    }
+
     /// Ends the last phase.
     pub(crate) fn finish(&mut self) {
         self.finish_bar();
@@ -168,6 +178,79 @@ impl Progress {
             })
         );
         self.last_json = Some(Instant::now());
+    }
+}
+
+/// The benches' log on a [`Progress`]: their lines as log lines, each embedding's steps as a
+/// phase of its own.
+pub(crate) struct BenchProgress {
+    progress: Progress,
+    what: String,
+}
+
+impl BenchProgress {
+    pub(crate) fn new(mode: ProgressMode) -> Self {
+        Self {
+            progress: Progress::new(mode),
+            what: String::new(),
+        }
+    }
+
+    pub(crate) fn finish(&mut self) {
+        self.progress.finish();
+    }
+}
+
+impl crate::verify::BenchLog for BenchProgress {
+    fn line(&mut self, text: &str) {
+        self.progress.log_line(text);
+    }
+
+    fn step(&mut self, what: &str, step: usize, total: usize) {
+        if what != self.what {
+            self.what = what.to_string();
+            self.progress.phase(what, total as u64);
+        }
+        self.progress.step(step as u64, "");
+    }
+}
+
+/// A `Write` that hands each complete line to [`Progress::log_line`] (for code that logs to a
+/// writer).
+pub(crate) struct LogLines<'a> {
+    progress: &'a std::cell::RefCell<Progress>,
+    pending: Vec<u8>,
+}
+
+impl<'a> LogLines<'a> {
+    pub(crate) fn new(progress: &'a std::cell::RefCell<Progress>) -> Self {
+        Self {
+            progress,
+            pending: Vec::new(),
+        }
+    }
+}
+
+impl std::io::Write for LogLines<'_> {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.pending.extend_from_slice(buf);
+        while let Some(i) = self.pending.iter().position(|&c| c == b'\n') {
+            let line: Vec<u8> = self.pending.drain(..=i).collect();
+            self.progress
+                .borrow()
+                .log_line(String::from_utf8_lossy(&line[..i]).trim_end());
+        }
+        Ok(buf.len())
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        if !self.pending.is_empty() {
+            let line = std::mem::take(&mut self.pending);
+            self.progress
+                .borrow()
+                .log_line(String::from_utf8_lossy(&line).trim_end());
+        }
+        Ok(())
     }
 }
 

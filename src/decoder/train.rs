@@ -1197,6 +1197,8 @@ pub struct RunOptions<'a> {
     /// Start a fresh run from this trained artifact instead of random weights (see
     /// [`Trainer::from_artifact`]); not with `resume`.
     pub init: Option<&'a Path>,
+    /// Called after every step with (step, steps) — a progress bar's feed.
+    pub on_step: Option<&'a mut dyn FnMut(usize, usize)>,
 }
 
 /// Runs a whole training job: loads the split under `images`, starts fresh or resumes from the
@@ -1206,7 +1208,7 @@ pub fn run(
     config: TrainConfig,
     images: &Path,
     out: &Path,
-    options: RunOptions<'_>,
+    mut options: RunOptions<'_>,
     log: &mut dyn Write,
 ) -> Result<Sidecar, TrainError> {
     let root = checkpoint_root(out);
@@ -1301,6 +1303,9 @@ pub fn run(
     while !trainer.done() {
         trainer.step()?;
         let k = trainer.step;
+        if let Some(f) = options.on_step.as_mut() {
+            f(k, c.steps);
+        }
         if c.log_every > 0
             && (k % c.log_every == 0 || k == c.steps)
             && let Some(entry) = trainer.log_entry()

@@ -354,7 +354,7 @@ pub(crate) fn as_disputed(
 fn fitted_dataset(
     name: &str,
     opts: &QualityOptions,
-    log: &mut dyn FnMut(&str),
+    log: &mut dyn crate::verify::BenchLog,
 ) -> Result<crate::fit::cache::Fitted, BenchError> {
     let d = crate::verify::paper::paper_datasets()
         .into_iter()
@@ -375,7 +375,8 @@ fn fitted_dataset(
         iterations: opts.fit_iterations,
         ..crate::fit::FitConfig::default()
     };
-    crate::fit::cache::fitted(name, &dir, &data, &cfg, cache, log).map_err(|e| input_err(&dir, e))
+    crate::fit::cache::fitted(name, &dir, &data, &cfg, cache, &mut |s: &str| log.line(s))
+        .map_err(|e| input_err(&dir, e))
 }
 
 /// The payload of one run: drawn from `seed`, the scene's name and the length, so a rerun of
@@ -392,7 +393,7 @@ pub fn bench_message(seed: u64, scene: &str, bits: usize) -> Vec<bool> {
 pub fn run(
     opts: &QualityOptions,
     device: &burn::tensor::Device,
-    log: &mut dyn FnMut(&str),
+    log: &mut dyn crate::verify::BenchLog,
 ) -> Result<QualityReport, BenchError> {
     let start = Instant::now();
     let all = shared_scenes();
@@ -421,7 +422,7 @@ pub fn run(
         for &bits in &opts.bits {
             let model = bench_model(opts.weights_dir.as_deref(), bits, device)?;
             let payload = bench_message(opts.seed, name, bits);
-            log(&format!(
+            log.line(&format!(
                 "{name}, {bits} bits: embedding over {} training views ({} Gaussians, {}²)…",
                 train.len(),
                 g.len(),
@@ -429,11 +430,20 @@ pub fn run(
             ));
             let t0 = Instant::now();
             let mut last = 0;
+            let what = format!("{name} {bits}");
             let out = embed(&g, &train, &payload, &model, &opts.embed, |p| {
+                // The finetuning's steps; the phases before it as phases without steps.
+                let phase = format!("{what} {}", format!("{:?}", p.phase).to_lowercase());
+                let total = if p.phase == crate::embed::pipeline::Phase::Finetune {
+                    p.total
+                } else {
+                    0
+                };
+                log.step(&phase, p.step, total);
                 if p.total > 0 && p.step >= last + (p.total / 10).max(1) {
                     last = p.step;
                     if let Some(s) = p.log {
-                        log(&format!(
+                        log.line(&format!(
                             "  step {}/{}: train bits {:.3} (EOT {:.3}), {:.1} dB",
                             p.step, p.total, s.bit_acc_clean, s.bit_acc_eot, s.psnr
                         ));
@@ -442,7 +452,7 @@ pub fn run(
                 ControlFlow::Continue(())
             })?;
             let embed_s = t0.elapsed().as_secs_f64();
-            log(&format!(
+            log.line(&format!(
                 "  embedded in {embed_s:.1} s; evaluating on {} unseen views…",
                 unseen.len()
             ));

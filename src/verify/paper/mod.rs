@@ -286,7 +286,7 @@ fn save_run(path: &std::path::Path, r: &PaperRun) -> Result<(), BenchError> {
 pub fn run(
     opts: &PaperOptions,
     device: &burn::tensor::Device,
-    log: &mut dyn FnMut(&str),
+    log: &mut dyn crate::verify::BenchLog,
 ) -> Result<PaperReport, BenchError> {
     let start = Instant::now();
     let all = paper_datasets();
@@ -312,11 +312,12 @@ pub fn run(
             iterations: opts.fit_iterations,
             ..FitConfig::default()
         };
-        let f = fitted(name, &dir, &data, &cfg, &opts.cache_dir, log).map_err(|e| {
-            BenchError::Input {
-                path: dir.clone(),
-                message: e.to_string(),
-            }
+        let f = fitted(name, &dir, &data, &cfg, &opts.cache_dir, &mut |s: &str| {
+            log.line(s)
+        })
+        .map_err(|e| BenchError::Input {
+            path: dir.clone(),
+            message: e.to_string(),
         })?;
         let ds = &f.dataset;
         let scale = |c: &Camera| {
@@ -361,7 +362,7 @@ pub fn run(
                     .and_then(|b| serde_json::from_slice::<PaperRun>(&b).ok())
                 {
                     Some(r) => {
-                        log(&format!(
+                        log.line(&format!(
                             "{name}, {variant}, {bits} bits, seed {seed}: reusing the finished run {} ({:.2} dB)",
                             record.display(),
                             r.eval.psnr
@@ -369,7 +370,7 @@ pub fn run(
                         runs.push(r);
                         continue;
                     }
-                    None => log(&format!(
+                    None => log.line(&format!(
                         "{name}, {variant}, {bits} bits, seed {seed}: the finished run {} is unreadable; running it again",
                         record.display()
                     )),
@@ -377,18 +378,27 @@ pub fn run(
             }
             let model = bench_model(opts.weights_dir.as_deref(), bits, device)?;
             let payload = bench_message(seed, name, bits);
-            log(&format!(
+            log.line(&format!(
                 "{name}, {variant}, {bits} bits, seed {seed}: embedding over {} training views ({} Gaussians)…",
                 train.len(),
                 f.scene.len()
             ));
             let t0 = Instant::now();
             let mut last = 0;
+            let what = format!("{name} {variant} {bits} s{seed}");
             let out = embed(&f.scene, &train, &payload, &model, &eo, |p| {
+                // The finetuning's steps; the phases before it as phases without steps.
+                let phase = format!("{what} {}", format!("{:?}", p.phase).to_lowercase());
+                let total = if p.phase == crate::embed::pipeline::Phase::Finetune {
+                    p.total
+                } else {
+                    0
+                };
+                log.step(&phase, p.step, total);
                 if p.total > 0 && p.step >= last + (p.total / 10).max(1) {
                     last = p.step;
                     if let Some(s) = p.log {
-                        log(&format!(
+                        log.line(&format!(
                             "  step {}/{}: train bits {:.3}, {:.1} dB",
                             p.step, p.total, s.bit_acc_clean, s.psnr
                         ));
@@ -407,7 +417,7 @@ pub fn run(
             let eval = evaluate_scene(&f.scene, &out.scene, &test, &model, &payload, &settings)?;
             let eval_s = t1.elapsed().as_secs_f64();
             let clean = eval.rows.iter().find(|r| r.name == "clean");
-            log(&format!(
+            log.line(&format!(
                 "  {embed_s:.0} s; test views: {:.2} dB, clean {:.1} %",
                 eval.psnr,
                 clean.map_or(f64::NAN, |r| 100.0 * r.bit_accuracy)
