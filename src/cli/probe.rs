@@ -467,6 +467,9 @@ pub struct QualityArgs {
     /// Elevations of those views in degrees (comma separated; default −20,10,35,60, the CLI's).
     #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
     train_elevations: Option<Vec<f32>>,
+    /// Hold out every N-th of those views, as `embed --holdout-every` does (default 8).
+    #[arg(long)]
+    holdout_every: Option<usize>,
     /// Embedding options (JSON, as `embed --config`); default: the defaults a user gets.
     #[arg(long)]
     config: Option<PathBuf>,
@@ -513,6 +516,9 @@ pub fn bench_cmd(c: &BenchCommand, progress: super::progress::ProgressMode) -> R
     }
     if let Some(e) = &a.train_elevations {
         o.train_elevations = e.clone();
+    }
+    if let Some(n) = a.holdout_every {
+        o.holdout_every = n;
     }
     if let Some(p) = &a.config {
         let bytes = std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?;
