@@ -45,7 +45,7 @@ async fn upload_watermark_download_render_verify_round_trip() {
     // none. The secret mask makes that useless (checked at the end).
     let opts: JobOptions =
         serde_json::from_value(small_job("00000000", 300)["options"].clone()).unwrap();
-    let spec = opts.resolve(&config(t.dir.path())).unwrap();
+    let spec = opts.resolve(&config(t.dir.path()), 32).unwrap();
     let views = training_views(&original, &spec);
     let ro = RenderOptions {
         background: spec.embed.finetune.background,

@@ -156,7 +156,7 @@ async fn no_secret_reaches_a_log_line_at_debug_level() {
     )
     .unwrap();
     let opts: JobOptions = serde_json::from_value(body["options"].clone()).unwrap();
-    let spec = opts.resolve(&cfg).unwrap();
+    let spec = opts.resolve(&cfg, 32).unwrap();
     let views = orbit_cameras(&scene, &spec.orbit).unwrap();
     let imgs = render_views(&marked, &views, &RenderOptions::default()).unwrap();
     let mut form = Form::new().text("asset_id", marked_id.clone());

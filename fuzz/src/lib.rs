@@ -97,7 +97,7 @@ pub fn job_options_target(data: &[u8]) {
     let Ok(opts) = serde_json::from_slice::<JobOptions>(data) else {
         return;
     };
-    let Ok(spec) = opts.resolve(&splatmark::config::Config::default()) else {
+    let Ok(spec) = opts.resolve(&splatmark::config::Config::default(), 32) else {
         return;
     };
     let json = serde_json::to_string(&spec).expect("a resolved job serialises");

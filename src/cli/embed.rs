@@ -197,7 +197,7 @@ pub(crate) fn embed_cmd(a: &EmbedArgs, progress: ProgressMode) -> Result<()> {
         None => random_message(a.bits),
     };
     let (_, g) = load(&a.scene, &a.limits)?;
-    let cams = a.views.cameras(&g)?;
+    let cams = a.views.cameras_for(&g, a.bits)?;
     let (train, held) = split_views(&cams, a.holdout_every);
     if train.is_empty() {
         bail!(

@@ -391,7 +391,7 @@ pub(crate) struct ViewArgs {
     #[arg(long, conflicts_with = "orbit")]
     cameras: Option<PathBuf>,
     /// N orbit views around the scene's robust bounds instead (default when no --cameras is
-    /// given: 24, as the service).
+    /// given: as the service — 24 for a 32-bit payload, 48 for 48 and 64 bits).
     #[arg(long)]
     orbit: Option<usize>,
     /// Image width (orbit default 512, as the service; with --cameras the camera's own width,
@@ -419,6 +419,12 @@ pub(crate) struct ViewArgs {
 impl ViewArgs {
     /// The cameras these arguments name, for scene `g`.
     pub(crate) fn cameras(&self, g: &Gaussians) -> Result<Vec<Camera>> {
+        self.cameras_for(g, 32)
+    }
+
+    /// The cameras, with the orbit's default view count for a `bits`-bit payload
+    /// ([`crate::config::ViewDefaults::orbit_for`]) when `--orbit` is not given.
+    pub(crate) fn cameras_for(&self, g: &Gaussians, bits: usize) -> Result<Vec<Camera>> {
         let cams = match &self.cameras {
             Some(path) => {
                 let cams = read_cameras(path)
@@ -429,7 +435,7 @@ impl ViewArgs {
                 // The service's defaults for uploads without cameras: the CLI embeds as a job does.
                 let d = crate::config::ViewDefaults::default();
                 let mut o = OrbitOptions {
-                    count: self.orbit.unwrap_or(d.orbit),
+                    count: self.orbit.unwrap_or(d.orbit_for(bits)),
                     width: self.width.unwrap_or(d.width),
                     height: self.height.unwrap_or(d.height),
                     fov_y_deg: self.fov,

@@ -470,6 +470,10 @@ pub struct QualityArgs {
     /// Hold out every N-th of those views, as `embed --holdout-every` does (default 8).
     #[arg(long)]
     holdout_every: Option<usize>,
+    /// Azimuth of the first unseen view in degrees (default 7.5: half a step of a 24-view
+    /// orbit).
+    #[arg(long, allow_hyphen_values = true)]
+    eval_azimuth_offset: Option<f32>,
     /// Embedding options (JSON, as `embed --config`); default: the defaults a user gets.
     #[arg(long)]
     config: Option<PathBuf>,
@@ -512,13 +516,17 @@ pub fn bench_cmd(c: &BenchCommand, progress: super::progress::ProgressMode) -> R
     }
     if let Some(n) = a.train_views {
         anyhow::ensure!(n >= 2, "--train-views must be at least 2");
-        o.train_views = n;
+        o.train_views = Some(n);
     }
     if let Some(e) = &a.train_elevations {
         o.train_elevations = e.clone();
     }
     if let Some(n) = a.holdout_every {
         o.holdout_every = n;
+    }
+    if let Some(d) = a.eval_azimuth_offset {
+        anyhow::ensure!(d.is_finite(), "--eval-azimuth-offset must be finite");
+        o.eval_azimuth_offset_deg = d;
     }
     if let Some(p) = &a.config {
         let bytes = std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?;

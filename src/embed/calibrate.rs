@@ -735,7 +735,7 @@ mod measure {
             ..QualityOptions::full(dir.clone())
         };
         let scene = crate::verify::bench::shared_scenes().remove(0);
-        let (train, unseen) = views(&scene, &g, &opts).unwrap();
+        let (train, unseen) = views(&scene, &g, &opts, 32).unwrap();
         let model = WatermarkModel::shipped(32, &burn::tensor::Device::flex()).unwrap();
         Some((g, train, unseen, model))
     }

@@ -78,7 +78,7 @@ pub async fn watermark(
     };
     let spec = req
         .options
-        .resolve(&st.cfg)
+        .resolve(&st.cfg, bits)
         .map_err(ApiError::unprocessable)?;
     let idempotency_key = match headers.get("idempotency-key") {
         Some(v) => {

@@ -48,8 +48,9 @@ pub const MAX_STEPS: usize = 100_000;
 pub const MAX_VIEWS: usize = 1000;
 
 impl JobOptions {
-    /// Resolves against `cfg`; the error says which option is wrong.
-    pub fn resolve(&self, cfg: &Config) -> Result<JobSpec, String> {
+    /// Resolves against `cfg` for a `bits`-bit payload (the orbit's default view count depends
+    /// on it: [`crate::config::ViewDefaults::orbit_for`]); the error says which option is wrong.
+    pub fn resolve(&self, cfg: &Config, bits: usize) -> Result<JobSpec, String> {
         let mut embed: EmbedOptions = match &self.embed {
             Some(v) => {
                 serde_json::from_value(v.clone()).map_err(|e| format!("options.embed: {e}"))?
@@ -117,7 +118,7 @@ impl JobOptions {
             return Err("options.embed.finetune.check_every must be at least 1".into());
         }
         let mut orbit = OrbitOptions {
-            count: cfg.views.orbit,
+            count: cfg.views.orbit_for(bits),
             width: cfg.views.width,
             height: cfg.views.height,
             ..OrbitOptions::default()
@@ -167,12 +168,20 @@ mod tests {
     #[test]
     fn defaults_come_from_the_server_config() {
         let cfg = Config::default();
-        let s = JobOptions::default().resolve(&cfg).unwrap();
+        let s = JobOptions::default().resolve(&cfg, 32).unwrap();
         assert_eq!(s.orbit.count, cfg.views.orbit);
         assert_eq!(s.orbit.width, cfg.views.width);
         assert_eq!(s.embed.finetune.steps, cfg.steps);
         assert!(s.use_cameras);
         assert_eq!(s.holdout_every, 8);
+        // Longer payloads train on more views, unless the client names a count.
+        for bits in [48, 64] {
+            let s = JobOptions::default().resolve(&cfg, bits).unwrap();
+            assert_eq!(s.orbit.count, cfg.views.orbit_long);
+            assert!(cfg.views.orbit_long > cfg.views.orbit);
+        }
+        let named: JobOptions = serde_json::from_value(json!({"orbit": {"count": 12}})).unwrap();
+        assert_eq!(named.resolve(&cfg, 64).unwrap().orbit.count, 12);
     }
 
     #[test]
@@ -183,7 +192,7 @@ mod tests {
             "embed": {"no_group_mask": true}
         }))
         .unwrap();
-        let s = o.resolve(&Config::default()).unwrap();
+        let s = o.resolve(&Config::default(), 32).unwrap();
         assert_eq!(s.orbit.count, 6);
         assert_eq!(s.orbit.width, 64);
         assert_eq!(s.orbit.height, Config::default().views.height);
@@ -227,7 +236,7 @@ mod tests {
             ),
         ] {
             let o: JobOptions = serde_json::from_value(v).unwrap();
-            let e = o.resolve(&cfg).unwrap_err();
+            let e = o.resolve(&cfg, 32).unwrap_err();
             assert!(e.contains(needle), "{e}");
         }
         assert!(serde_json::from_value::<JobOptions>(json!({"stepz": 3})).is_err());
@@ -237,7 +246,9 @@ mod tests {
     fn a_spec_survives_the_job_row_exactly() {
         // Job rows hold the spec as JSON text; idempotent replays compare it with a fresh one,
         // so floats must print and parse back bit-exactly (serde_json's float_roundtrip).
-        let s = JobOptions::default().resolve(&Config::default()).unwrap();
+        let s = JobOptions::default()
+            .resolve(&Config::default(), 32)
+            .unwrap();
         let v = serde_json::to_value(&s).unwrap();
         let back: serde_json::Value =
             serde_json::from_str(&serde_json::to_string(&v).unwrap()).unwrap();

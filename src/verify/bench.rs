@@ -6,8 +6,8 @@
 //! use, watermarked through the dataset's training cameras on its own background and judged on
 //! its test cameras), and each message length:
 //!
-//! 1. **Training views as the CLI makes them**: `splatmark embed`'s defaults — `train_views`
-//!    orbit views (elevations −20°, 10°, 35°, 60°) at `size`², every `holdout_every`-th held out by
+//! 1. **Training views as the CLI makes them**: `splatmark embed`'s defaults — 24 orbit views
+//!    for 32 bits, 48 for longer payloads (or `train_views`) (elevations −20°, 10°, 35°, 60°) at `size`², every `holdout_every`-th held out by
 //!    the CLI — or, for a scene with its own cameras (udon), every camera but every
 //!    `holdout_every_cameras`-th.
 //! 2. **Embedding with [`EmbedOptions::default`]** and a uniformly random payload (what the
@@ -84,8 +84,9 @@ pub struct QualityOptions {
     /// Render side (training and evaluation), pixels: by default the orbit side of the CLI and
     /// the service (`config::ViewDefaults`, 512).
     pub size: u32,
-    /// Orbit views the CLI trains on (its default 24) …
-    pub train_views: usize,
+    /// Orbit views to train on; `None`: what the CLI and the service take for the payload
+    /// (`config::ViewDefaults::orbit_for`: 24 at 32 bits, 48 above) …
+    pub train_views: Option<usize>,
     /// Their elevations (view `i` at `train_elevations[i % len]`; the orbit's default).
     pub train_elevations: Vec<f32>,
     /// … of which it holds out every n-th (its default 8).
@@ -129,7 +130,7 @@ impl QualityOptions {
             fit_iterations: crate::fit::FitConfig::default().iterations,
             bits: vec![32, 48, 64],
             size: crate::config::ViewDefaults::default().width,
-            train_views: 24,
+            train_views: None,
             train_elevations: OrbitOptions::default().elevations_deg,
             holdout_every: 8,
             holdout_every_cameras: 4,
@@ -149,7 +150,7 @@ impl QualityOptions {
             scenes: vec!["donut".into()],
             bits: vec![32],
             size: 128,
-            train_views: 8,
+            train_views: Some(8),
             eval_views: 4,
             eval_azimuth_offset_deg: 0.5 * 360.0 / 8.0,
             ..Self::full(scenes_dir)
@@ -283,11 +284,12 @@ fn input_err(path: &Path, e: impl std::fmt::Display) -> BenchError {
     }
 }
 
-/// Training and unseen cameras of `scene` (module docs).
+/// Training and unseen cameras of `scene` for a `bits`-bit payload (module docs).
 pub fn views(
     scene: &BenchScene,
     g: &Gaussians,
     opts: &QualityOptions,
+    bits: usize,
 ) -> Result<(Vec<Camera>, Vec<Camera>), BenchError> {
     if let Some(c) = &scene.cameras {
         let path = opts.scenes_dir.join(c);
@@ -304,7 +306,9 @@ pub fn views(
         return Ok((train, held));
     }
     let train_orbit = OrbitOptions {
-        count: opts.train_views,
+        count: opts
+            .train_views
+            .unwrap_or_else(|| crate::config::ViewDefaults::default().orbit_for(bits)),
         elevations_deg: opts.train_elevations.clone(),
         width: opts.size,
         height: opts.size,
@@ -400,19 +404,21 @@ pub fn run(
     let mut runs = Vec::new();
     for name in &opts.scenes {
         let mut embed_opts = opts.embed.clone();
-        let (g, train, unseen) = match all.iter().find(|s| &s.name == name) {
+        // A shared scene's views depend on the payload (more orbit views for longer ones); a
+        // dataset's are its own cameras.
+        let (g, cameras) = match all.iter().find(|s| &s.name == name) {
             Some(scene) => {
                 let path = opts.scenes_dir.join(&scene.file);
                 let g = read_scene(&path, &Limits::default()).map_err(|e| input_err(&path, e))?;
-                let (train, unseen) = views(scene, &g, opts)?;
-                (g, train, unseen)
+                (g, Err(scene))
             }
             None => {
                 let f = fitted_dataset(name, opts, log)?;
                 embed_opts.finetune.background = f.dataset.background;
                 let cams =
                     |v: &[crate::fit::View]| v.iter().map(|x| x.camera.clone()).collect::<Vec<_>>();
-                (f.scene, cams(&f.dataset.train), cams(&f.dataset.test))
+                let v = (cams(&f.dataset.train), cams(&f.dataset.test));
+                (f.scene, Ok(v))
             }
         };
         let opts = &QualityOptions {
@@ -420,6 +426,11 @@ pub fn run(
             ..opts.clone()
         };
         for &bits in &opts.bits {
+            // Ok: a dataset's own cameras; Err: a shared scene, viewed as the CLI would.
+            let (train, unseen) = match &cameras {
+                Ok(v) => v.clone(),
+                Err(scene) => views(scene, &g, opts, bits)?,
+            };
             let model = bench_model(opts.weights_dir.as_deref(), bits, device)?;
             let payload = bench_message(opts.seed, name, bits);
             log.line(&format!(
@@ -613,14 +624,28 @@ mod tests {
     use crate::verify::eval::Row;
 
     #[test]
-    fn unseen_views_are_not_training_views() {
+    fn unseen_views_are_not_training_views_and_long_payloads_train_on_more() {
         let g = object_scene(200, 0, 3);
-        let opts = QualityOptions::quick(PathBuf::from("/nonexistent"));
+        let dir = PathBuf::from("/nonexistent");
         let scene = &shared_scenes()[0];
-        let (train, unseen) = views(scene, &g, &opts).unwrap();
-        assert_eq!(train.len(), 7);
-        assert_eq!(unseen.len(), 4);
-        for u in &unseen {
+        for (opts, bits, trained, unseen_n) in [
+            (QualityOptions::quick(dir.clone()), 32, 7, 4),
+            (QualityOptions::full(dir.clone()), 32, 21, 12),
+            (QualityOptions::full(dir.clone()), 48, 42, 12),
+            (QualityOptions::full(dir.clone()), 64, 42, 12),
+        ] {
+            let (train, unseen) = views(scene, &g, &opts, bits).unwrap();
+            assert_eq!(
+                (train.len(), unseen.len()),
+                (trained, unseen_n),
+                "{bits} bits"
+            );
+            assert_unseen(&train, &unseen);
+        }
+    }
+
+    fn assert_unseen(train: &[Camera], unseen: &[Camera]) {
+        for u in unseen {
             let nearest = train
                 .iter()
                 .map(|t| t.center().distance(u.center()))
