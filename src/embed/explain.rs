@@ -5,6 +5,8 @@
 //! pixel shows most. `splatmark explain` and the console's attribution viewer
 //! (`GET /v1/assets/{id}/attribution/picture`, `…/pick`) both draw through [`Pictures`].
 
+use std::sync::OnceLock;
+
 use serde::{Deserialize, Serialize};
 
 use super::attribution::AttributionRecord;
@@ -98,8 +100,9 @@ pub struct Pick {
 pub struct Pictures {
     marked: Gaussians,
     original: Option<Gaussians>,
-    roles: Gaussians,
-    heat: Gaussians,
+    /// The role and heatmap copies of `marked`, made on first use (a pick needs neither).
+    roles: OnceLock<Gaussians>,
+    heat: OnceLock<Gaussians>,
     records: Vec<AttributionRecord>,
     legend: Legend,
 }
@@ -180,19 +183,34 @@ impl Pictures {
                 .sum(),
             heat_white_at: top,
         };
-        let roles = recoloured(&marked, |i| match records[i].role {
-            Role::Carrier => CARRIER,
-            Role::Compensator => COMPENSATOR,
-            _ => UNTOUCHED,
-        });
-        let heat_scene = recoloured(&marked, |i| heat(shares[i] / top));
         Ok(Self {
             marked,
             original,
-            roles,
-            heat: heat_scene,
+            roles: OnceLock::new(),
+            heat: OnceLock::new(),
             records,
             legend,
+        })
+    }
+
+    /// Every Gaussian in its role's colour.
+    fn roles(&self) -> &Gaussians {
+        self.roles.get_or_init(|| {
+            recoloured(&self.marked, |i| match self.records[i].role {
+                Role::Carrier => CARRIER,
+                Role::Compensator => COMPENSATOR,
+                _ => UNTOUCHED,
+            })
+        })
+    }
+
+    /// Every Gaussian coloured by its share of the watermark gradient.
+    fn heat(&self) -> &Gaussians {
+        self.heat.get_or_init(|| {
+            let top = self.legend.heat_white_at;
+            recoloured(&self.marked, |i| {
+                heat(self.records[i].wm_grad_share.unwrap_or(0.0) / top)
+            })
         })
     }
 
@@ -209,8 +227,8 @@ impl Pictures {
         let opts = on_black();
         Ok(match layer {
             Layer::View => render(&self.marked, cam, &opts)?.image,
-            Layer::Roles => render(&self.roles, cam, &opts)?.image,
-            Layer::Heat => render(&self.heat, cam, &opts)?.image,
+            Layer::Roles => render(self.roles(), cam, &opts)?.image,
+            Layer::Heat => render(self.heat(), cam, &opts)?.image,
             Layer::Diff => {
                 let o = self.original.as_ref().ok_or(ExplainError::NoOriginal)?;
                 let after = render(&self.marked, cam, &opts)?.image;

@@ -200,7 +200,7 @@ async fn with_pictures<T: Send + 'static>(
     a: &Asset,
     with_original: bool,
     (view, views, size): (usize, usize, u32),
-    draw: impl FnOnce(&Pictures, &Camera) -> Result<T, ExplainError> + Send + 'static,
+    draw: impl FnOnce(&Pictures, &Camera) -> ApiResult<T> + Send + 'static,
 ) -> ApiResult<T> {
     let records = all_records(st, a).await?;
     let original = match (with_original, a.parent_id) {
@@ -241,7 +241,7 @@ async fn with_pictures<T: Send + 'static>(
         )
         .map_err(ApiError::internal)?;
         let pictures = Pictures::new(marked, records, original).map_err(explain_err)?;
-        draw(&pictures, &cams[view]).map_err(explain_err)
+        draw(&pictures, &cams[view])
     })
     .await
     .map_err(ApiError::internal)?
@@ -265,12 +265,10 @@ pub async fn picture(
     };
     let at = view_of(q.view, q.views, q.size)?;
     let png = with_pictures(&st, &a, layer == Layer::Diff, at, move |p, cam| {
-        let img = p.draw_rgb8(layer, cam)?;
+        let img = p.draw_rgb8(layer, cam).map_err(explain_err)?;
         let mut out = std::io::Cursor::new(Vec::new());
         img.write_to(&mut out, image::ImageFormat::Png)
-            .map_err(|e| {
-                ExplainError::Render(crate::render::RenderError::BadScene(e.to_string()))
-            })?;
+            .map_err(ApiError::internal)?;
         Ok(out.into_inner())
     })
     .await?;
@@ -297,7 +295,10 @@ pub async fn pick(
     let a = watermarked(&st, &caller, &id).await?;
     let at = view_of(q.view, q.views, q.size)?;
     let (x, y) = (q.x, q.y);
-    let picked = with_pictures(&st, &a, false, at, move |p, cam| p.pick(cam, x, y)).await?;
+    let picked = with_pictures(&st, &a, false, at, move |p, cam| {
+        p.pick(cam, x, y).map_err(explain_err)
+    })
+    .await?;
     Ok(Json(match picked {
         Some(p) => json!({"index": p.index, "weight": p.weight, "record": p.record}),
         None => json!({"index": null}),
