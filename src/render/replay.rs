@@ -186,6 +186,90 @@ impl<T: Real> Replay<T> {
         Ok(image)
     }
 
+    /// This view with the Gaussians marked in `dropped` (scene-indexed) removed, as the model
+    /// attack "remove Gaussians" removes them: each pixel's remaining contributions are
+    /// recomposited front to back with their recorded opacities α_i = w_i / T_i, so a Gaussian
+    /// behind a removed one shows through by 1/(1 − α) more. The result renders and
+    /// back-propagates as a replay of the same geometry (colours of the kept Gaussians only).
+    /// Exact but for the Gaussians the original render never reached (it stopped where
+    /// T ≤ 1e-4; behind an opaque removed Gaussian they would now show).
+    pub fn without(&self, dropped: &[bool]) -> Result<Self, RenderError> {
+        if dropped.len() != self.n_gaussians {
+            return Err(RenderError::BadScene(format!(
+                "a removal mask of {} Gaussians for a replay of {}",
+                dropped.len(),
+                self.n_gaussians
+            )));
+        }
+        let px = TILE * TILE;
+        let mut w = vec![T::zero(); self.w.len()];
+        let mut final_t = self.final_t.clone();
+        let w_ranges: Vec<(u32, u32)> = (0..self.tile_runs.len())
+            .map(|t| {
+                let end = self
+                    .tile_starts
+                    .get(t + 1)
+                    .copied()
+                    .unwrap_or(self.w.len() as u32);
+                (self.tile_starts[t], end)
+            })
+            .collect();
+        let w_tiles = split_by_ranges(&mut w, &w_ranges);
+        w_tiles
+            .into_par_iter()
+            .zip(final_t.par_chunks_mut(px))
+            .enumerate()
+            .for_each(|(t, (w_out, t_out))| {
+                let (r0, r1) = self.tile_runs[t];
+                let start = self.tile_starts[t] as usize;
+                let mut t_orig = vec![T::one(); px];
+                let mut t_new = vec![T::one(); px];
+                let mut touched = vec![false; px];
+                let mut k = start;
+                for &(splat, end) in &self.runs[r0 as usize..r1 as usize] {
+                    let gone = dropped[self.ids[splat as usize] as usize];
+                    for (p, &wi) in self.pix[k..end as usize]
+                        .iter()
+                        .zip(&self.w[k..end as usize])
+                    {
+                        let p = *p as usize;
+                        touched[p] = true;
+                        let to = t_orig[p];
+                        let alpha = if to > T::zero() { wi / to } else { T::zero() };
+                        t_orig[p] = to * (T::one() - alpha);
+                        if !gone {
+                            w_out[k - start] = alpha * t_new[p];
+                            t_new[p] = t_new[p] * (T::one() - alpha);
+                        }
+                        k += 1;
+                    }
+                    k = end as usize;
+                }
+                for p in 0..px {
+                    if touched[p] {
+                        t_out[p] = t_new[p];
+                    }
+                }
+            });
+        Ok(Self {
+            width: self.width,
+            height: self.height,
+            cam: self.cam.clone(),
+            sh_degree: self.sh_degree,
+            background: self.background,
+            geometry: self.geometry,
+            n_gaussians: self.n_gaussians,
+            ids: self.ids.clone(),
+            tiles_x: self.tiles_x,
+            tile_runs: self.tile_runs.clone(),
+            runs: self.runs.clone(),
+            tile_starts: self.tile_starts.clone(),
+            pix: self.pix.clone(),
+            w,
+            final_t,
+        })
+    }
+
     /// The Gaussian with the largest compositing weight α·T at pixel (`x`, `y`) and that
     /// weight; `None` where no Gaussian contributes (or outside the image).
     pub fn strongest_at(&self, x: usize, y: usize) -> Option<(u32, T)> {

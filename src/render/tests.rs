@@ -745,3 +745,88 @@ fn a_replay_refuses_moved_geometry_colour_overrides_and_wrong_gradients() {
         Err(RenderError::BadScene(_))
     ));
 }
+
+#[test]
+fn a_replay_without_some_gaussians_renders_and_differentiates_as_the_scene_without_them() {
+    let (g, cam) = replay_scene(25, 400);
+    let opts = RenderOptions {
+        background: [0.2, 0.4, 0.8],
+        ..Default::default()
+    };
+    let replay = Replay::record(&g, &cam, &opts).unwrap();
+    let mut rng = Lcg(11);
+    let dropped: Vec<bool> = (0..g.len()).map(|_| rng.range(0.0, 1.0) < 0.2).collect();
+    assert!(dropped.iter().filter(|&&d| d).count() > 40);
+    // The same scene with those Gaussians made fully transparent (α < 1/255: never drawn).
+    let mut gone = g.clone();
+    for (o, &d) in gone.opacity_logits.iter_mut().zip(&dropped) {
+        if d {
+            *o = -40.0;
+        }
+    }
+    let truth = render(&gone, &cam, &opts).unwrap();
+    let without = replay.without(&dropped).unwrap();
+    let ours = without.render(&g).unwrap();
+    let before = replay.render(&g).unwrap();
+    let moved = before
+        .iter()
+        .zip(&truth.image)
+        .filter(|(a, b)| (0..3).any(|c| (a[c] - b[c]).abs() > 1e-3))
+        .count();
+    assert!(
+        moved > 500,
+        "removing a fifth of the scene changes the view"
+    );
+    // Exact wherever the recorded render cannot have stopped early (it stops before a
+    // Gaussian that would take T below 1e-4, so only where T < 1e-4 / (1 − 0.99)): there,
+    // Gaussians it never reached show through the hole.
+    let full = render(&g, &cam, &opts).unwrap();
+    let tiles_x = 70usize.div_ceil(TILE);
+    let stopped = |i: usize| {
+        let (x, y) = (i % 70, i / 70);
+        let k = ((y / TILE) * tiles_x + x / TILE) * TILE * TILE + (y % TILE) * TILE + x % TILE;
+        full.state.final_t[k] < 1e-2
+    };
+    let n_stopped = (0..70 * 52).filter(|&i| stopped(i)).count();
+    assert!(
+        n_stopped > 0 && n_stopped < 70 * 52 / 4,
+        "{n_stopped} pixels stopped early"
+    );
+    let worst = ours
+        .iter()
+        .zip(&truth.image)
+        .enumerate()
+        .filter(|&(i, _)| !stopped(i))
+        .flat_map(|(_, (a, b))| (0..3).map(move |c| (a[c] - b[c]).abs()))
+        .fold(0.0f32, f32::max);
+    assert!(worst < 1e-4, "largest difference {worst}");
+    // Its colour gradient is the rasterizer's on the scene without them (from the same
+    // pixels).
+    let d: Vec<[f32; 3]> = (0..70 * 52)
+        .map(|i| {
+            let d = std::array::from_fn(|_| rng.range(-1.0, 1.0) as f32);
+            if stopped(i) { [0.0; 3] } else { d }
+        })
+        .collect();
+    let a = without.backward(&g, &d).unwrap();
+    let b = backward(&gone, &truth, &d).unwrap().params;
+    let scale = b.sh_dc.iter().flatten().fold(0.0f32, |m, v| m.max(v.abs()));
+    assert!(scale > 0.1);
+    for (i, (x, y)) in a.sh_dc.iter().zip(&b.sh_dc).enumerate() {
+        for c in 0..3 {
+            assert!(
+                (x[c] - y[c]).abs() <= 1e-4 * scale,
+                "Gaussian {i}: {} vs {}",
+                x[c],
+                y[c]
+            );
+        }
+        if dropped[i] {
+            assert_eq!(*x, [0.0; 3]);
+        }
+    }
+    assert!(matches!(
+        replay.without(&dropped[1..]),
+        Err(RenderError::BadScene(_))
+    ));
+}

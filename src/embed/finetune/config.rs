@@ -154,6 +154,14 @@ pub struct FinetuneConfig {
     /// The attacks of the EOT term ramp in: step k draws an attack with probability
     /// min(1, k / (eot_ramp · steps)) (0 = attacks from step 1, as before).
     pub eot_ramp: f32,
+    /// The model attack "remove Gaussians" in the EOT term: on a step that draws an attack
+    /// (after the same ramp), with this probability the watermark loss reads the step's views
+    /// with a random fraction — uniform in [0, `eot_remove_max`] — of the Gaussians removed
+    /// (a replay recomposites without them, [`crate::render::Replay::without`]); the visual
+    /// loss and the fidelity bound always see the whole scene. 0 = off.
+    pub eot_remove_probability: f32,
+    /// Largest fraction of the Gaussians `eot_remove_probability` removes.
+    pub eot_remove_max: f32,
     /// DWT levels of the band losses (the decoder reads the LL of 2 levels).
     pub dwt_levels: usize,
     /// Background of every render (linear RGB; must be the targets').
@@ -216,6 +224,8 @@ impl Default for FinetuneConfig {
             wm_geometry: false,
             wm_lr_min_fraction: 0.1,
             eot_ramp: 0.3,
+            eot_remove_probability: 0.0,
+            eot_remove_max: 0.3,
             dwt_levels: 2,
             background: [0.0; 3],
             seed: 0,

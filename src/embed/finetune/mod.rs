@@ -333,13 +333,6 @@ pub fn finetune(
                 (c.width as usize, c.height as usize)
             })
             .collect();
-        let leaves = |dev: &Device| -> Vec<Tensor<4>> {
-            renders
-                .iter()
-                .zip(&dims)
-                .map(|(r, &(wd, ht))| to_tensor(r.image(), wd, ht, dev).require_grad())
-                .collect()
-        };
         let targets: Vec<Tensor<4>> = picked
             .iter()
             .zip(&dims)
@@ -361,9 +354,34 @@ pub fn finetune(
         } else {
             attack
         };
+        // The model attack "remove Gaussians" (drawn only when enabled, so that the random
+        // stream of a finetuning without it is unchanged).
+        let removed: Option<Vec<bool>> = (cfg.eot_remove_probability > 0.0
+            && rng.uniform() < p_attack * f64::from(cfg.eot_remove_probability))
+        .then(|| {
+            let f = rng.uniform() * f64::from(cfg.eot_remove_max.clamp(0.0, 1.0));
+            (0..g.len()).map(|_| rng.uniform() < f).collect()
+        });
+        let wm_renders = match &removed {
+            Some(r) => Some(
+                picked
+                    .iter()
+                    .map(|&v| renderer.render_without(&g, v, r))
+                    .collect::<Result<Vec<_>, _>>()?,
+            ),
+            None => None,
+        };
+        let wm_frames = wm_renders.as_ref().unwrap_or(&renders);
         let attack = match attack {
             DiffAttack::Chain(c) if c.is_empty() => None,
             a => Some(a),
+        };
+        let leaves = |dev: &Device| -> Vec<Tensor<4>> {
+            wm_frames
+                .iter()
+                .zip(&dims)
+                .map(|(r, &(wd, ht))| to_tensor(r.image(), wd, ht, dev).require_grad())
+                .collect()
         };
         let xs = leaves(&device);
         let (z_cl, z_t, low) = decode_views(model, &xs, &targets, attack.as_ref(), cfg.dwt_levels)?;
@@ -460,10 +478,20 @@ pub fn finetune(
             let n = r.image().len();
             let d_wm = image_grad(&xs[k], &gw, n);
             let d_vis: Vec<[f32; 3]> = vis[k].1.iter().map(|d| d.map(|v| v * f)).collect();
-            let [by_wm, by_vis]: [Gaussians; 2] = renderer
-                .backward_each(&g, r, &[&d_wm, &d_vis])?
-                .try_into()
-                .expect("two gradients");
+            let [by_wm, by_vis]: [Gaussians; 2] = match &wm_renders {
+                None => renderer
+                    .backward_each(&g, r, &[&d_wm, &d_vis])?
+                    .try_into()
+                    .expect("two gradients"),
+                Some(wm) => {
+                    let mut by_wm = renderer.backward_each(&g, &wm[k], &[&d_wm])?;
+                    let mut by_vis = renderer.backward_each(&g, r, &[&d_vis])?;
+                    [
+                        by_wm.pop().expect("one gradient"),
+                        by_vis.pop().expect("one gradient"),
+                    ]
+                }
+            };
             add_into(&mut grad_wm, &by_wm);
             add_into(&mut grad_vis, &by_vis);
         }

@@ -1,9 +1,11 @@
 //! Tests of the finetuning: routing, the fidelity bound, the step rules, the views check.
 
+use super::views::{Frame, Renderer};
 use super::*;
 use crate::attack::diff::{AttackFamily, EotConfig};
 use crate::decoder::artifact::Sidecar;
 use crate::decoder::train::{TrainConfig, bce_with_logits};
+use crate::render::gpu::Rasterizer;
 use crate::render::{self, RenderOptions};
 use crate::scene::orbit::{OrbitOptions, orbit_cameras};
 use crate::scene::synthetic::object_scene;
@@ -697,4 +699,82 @@ fn the_shipped_decoder_reads_every_eot_attack_alike_on_the_gpu_device() {
             attack.kind()
         );
     }
+}
+
+#[test]
+fn removing_gaussians_reads_alike_from_a_replay_and_from_the_rasterizer() {
+    let (g, views, opts) = setup();
+    let removed: Vec<bool> = (0..g.len()).map(|i| (i * 7919) % 5 == 0).collect();
+    let mut replayed = Renderer::new(&views, &opts, true, Rasterizer::Cpu);
+    let mut rasterised = Renderer::new(&views, &opts, false, Rasterizer::Cpu);
+    let mut reached = 0;
+    for v in 0..views.len() {
+        let a = replayed.render_without(&g, v, &removed).unwrap();
+        let b = rasterised.render_without(&g, v, &removed).unwrap();
+        assert!(matches!(a, Frame::Removed { .. }));
+        assert!(matches!(b, Frame::Masked { .. }));
+        let whole = replayed.render(&g, v).unwrap();
+        let changed = whole
+            .image()
+            .iter()
+            .zip(a.image())
+            .filter(|(p, q)| (0..3).any(|c| (p[c] - q[c]).abs() > 1e-3))
+            .count();
+        assert!(
+            changed > 20,
+            "view {v}: removing a fifth changes {changed} pixels"
+        );
+        // Equal but where the recorded render stopped early (T ≤ 1e-4) in front of Gaussians
+        // that now show through (Replay::without).
+        let off = a
+            .image()
+            .iter()
+            .zip(b.image())
+            .filter(|(p, q)| (0..3).any(|c| (p[c] - q[c]).abs() > 1e-4))
+            .count();
+        assert!(
+            off * 100 <= a.image().len(),
+            "view {v}: {off} pixels differ"
+        );
+        // ∂L/∂image on the pixels both read alike.
+        let d: Vec<[f32; 3]> = a
+            .image()
+            .iter()
+            .zip(b.image())
+            .enumerate()
+            .map(|(i, (p, q))| {
+                if (0..3).any(|c| (p[c] - q[c]).abs() > 1e-4) {
+                    [0.0; 3]
+                } else {
+                    [(i % 7) as f32 - 3.0, 1.0, (i % 3) as f32]
+                }
+            })
+            .collect();
+        let ga = replayed
+            .backward_each(&g, &a, &[&d])
+            .unwrap()
+            .pop()
+            .unwrap();
+        let gb = rasterised
+            .backward_each(&g, &b, &[&d])
+            .unwrap()
+            .pop()
+            .unwrap();
+        for (i, (x, y)) in ga.sh_dc.iter().zip(&gb.sh_dc).enumerate() {
+            for c in 0..3 {
+                assert!(
+                    (x[c] - y[c]).abs() <= 1e-3 * (1.0 + y[c].abs()),
+                    "view {v}, Gaussian {i}: {} vs {}",
+                    x[c],
+                    y[c]
+                );
+            }
+            if removed[i] {
+                assert_eq!(*x, [0.0; 3]);
+                assert_eq!(*y, [0.0; 3]);
+            }
+            reached += usize::from(*x != [0.0; 3]);
+        }
+    }
+    assert!(reached > 100);
 }

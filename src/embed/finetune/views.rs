@@ -117,8 +117,22 @@ pub(super) fn views_psnr(renderer: &mut Renderer, g: &Gaussians) -> Result<f32, 
 /// One view as a step rendered it.
 pub(super) enum Frame {
     Raster(Box<Rendered<f32>>),
-    Replayed { view: usize, image: Vec<[f32; 3]> },
+    Replayed {
+        view: usize,
+        image: Vec<[f32; 3]>,
+    },
     Gpu(Box<GpuRendered>),
+    /// A view with some Gaussians removed: a replay recomposited without them.
+    Removed {
+        replay: Box<Replay<f32>>,
+        image: Vec<[f32; 3]>,
+    },
+    /// A view with some Gaussians removed, rasterised: `scene` is the scene with those
+    /// Gaussians made transparent (what `frame` rendered and back-propagates through).
+    Masked {
+        frame: Box<Frame>,
+        scene: Box<Gaussians>,
+    },
 }
 
 impl Frame {
@@ -126,8 +140,9 @@ impl Frame {
     pub fn image(&self) -> &[[f32; 3]] {
         match self {
             Frame::Raster(r) => &r.image,
-            Frame::Replayed { image, .. } => image,
+            Frame::Replayed { image, .. } | Frame::Removed { image, .. } => image,
             Frame::Gpu(r) => &r.image,
+            Frame::Masked { frame, .. } => frame.image(),
         }
     }
 }
@@ -166,31 +181,77 @@ impl<'a> Renderer<'a> {
             let r = gpu.render(g, &self.views[v].camera, self.opts)?;
             return Ok(Frame::Gpu(Box::new(r)));
         }
-        if let Some(replays) = &mut self.replays {
-            if replays[v].is_none() && self.bytes < REPLAY_BUDGET_BYTES {
-                let r = Replay::record(g, &self.views[v].camera, self.opts)?;
-                self.bytes += r.bytes();
-                tracing::debug!(
-                    view = v,
-                    contributions = r.contributions(),
-                    bytes = r.bytes(),
-                    total_bytes = self.bytes,
-                    "recorded a replay"
-                );
-                replays[v] = Some(r);
-            }
-            if let Some(r) = &replays[v] {
-                return Ok(Frame::Replayed {
-                    view: v,
-                    image: r.render(g)?,
-                });
-            }
+        if let Some(r) = self.replay(g, v)? {
+            return Ok(Frame::Replayed {
+                view: v,
+                image: r.render(g)?,
+            });
         }
         Ok(Frame::Raster(Box::new(render::render(
             g,
             &self.views[v].camera,
             self.opts,
         )?)))
+    }
+
+    /// View `v`'s replay, recorded from `g` the first time (`None` when views are not
+    /// replayed, or past the memory budget).
+    fn replay(&mut self, g: &Gaussians, v: usize) -> Result<Option<&Replay<f32>>, RenderError> {
+        let Some(replays) = &mut self.replays else {
+            return Ok(None);
+        };
+        if replays[v].is_none() && self.bytes < REPLAY_BUDGET_BYTES {
+            let r = Replay::record(g, &self.views[v].camera, self.opts)?;
+            self.bytes += r.bytes();
+            tracing::debug!(
+                view = v,
+                contributions = r.contributions(),
+                bytes = r.bytes(),
+                total_bytes = self.bytes,
+                "recorded a replay"
+            );
+            replays[v] = Some(r);
+        }
+        Ok(replays[v].as_ref())
+    }
+
+    /// View `v` of `g` without the Gaussians marked in `removed` (scene-indexed): recomposited
+    /// from its replay where there is one, otherwise rasterised with them transparent.
+    pub fn render_without(
+        &mut self,
+        g: &Gaussians,
+        v: usize,
+        removed: &[bool],
+    ) -> Result<Frame, RenderError> {
+        if let Some(r) = self.replay(g, v)? {
+            let replay = r.without(removed)?;
+            let image = replay.render(g)?;
+            return Ok(Frame::Removed {
+                replay: Box::new(replay),
+                image,
+            });
+        }
+        if removed.len() != g.len() {
+            return Err(RenderError::BadScene(format!(
+                "a removal mask of {} Gaussians for a scene of {}",
+                removed.len(),
+                g.len()
+            )));
+        }
+        let mut masked = g.clone();
+        for (o, &r) in masked.opacity_logits.iter_mut().zip(removed) {
+            if r {
+                // α = sigmoid(−40) ≈ 4e-18, far below the 1/255 a Gaussian needs to be drawn.
+                *o = -40.0;
+            }
+        }
+        let saved = self.replays.take();
+        let frame = self.render(&masked, v);
+        self.replays = saved;
+        Ok(Frame::Masked {
+            frame: Box::new(frame?),
+            scene: Box::new(masked),
+        })
     }
 
     /// ∂L/∂θ from each ∂L/∂image of `frame` in `d_images` (scene-shaped; a replayed view
@@ -222,6 +283,8 @@ impl<'a> Renderer<'a> {
                 .and_then(|r| r[*view].as_ref())
                 .expect("a replayed frame has its replay")
                 .backward_each(g, d_images),
+            Frame::Removed { replay, .. } => replay.backward_each(g, d_images),
+            Frame::Masked { frame, scene } => self.backward_each(scene, frame, d_images),
         }
     }
 }
