@@ -9,7 +9,7 @@ use crate::decoder::train::{
 use crate::render::{RenderOptions, to_rgb8};
 use crate::scene::bounds::{full_bounds, robust_bounds};
 use crate::scene::camera::{read_cameras, resize_all};
-use crate::scene::format::read_scene_bytes_detect;
+use crate::scene::format::read_scene_path;
 use crate::scene::orbit::{OrbitOptions, UpAxis, orbit_cameras};
 use crate::scene::{Camera, Gaussians, Limits};
 use anyhow::{Context, Result, bail};
@@ -681,10 +681,14 @@ fn decode_cmd(a: &DecodeArgs) -> Result<()> {
 }
 
 fn convert(path: &Path, out: &Path, limits: &LimitArgs) -> Result<()> {
-    let Some(to) = crate::scene::Format::from_path(out) else {
+    let Some(to) = crate::scene::Format::from_path(out).filter(|f| f.is_writable()) else {
         bail!(
-            "{}: the output's extension must be .ply, .compressed.ply, .splat or .spz",
-            out.display()
+            "{}: the output's extension must be .ply, .compressed.ply, .splat or .spz{}",
+            out.display(),
+            match crate::scene::Format::from_path(out) {
+                Some(_) => format!(" ({})", crate::scene::sog::READ_ONLY),
+                None => String::new(),
+            }
         );
     };
     let (format, g) = load(path, limits)?;
@@ -708,15 +712,13 @@ fn convert(path: &Path, out: &Path, limits: &LimitArgs) -> Result<()> {
     Ok(())
 }
 
+/// A scene file, or an unbundled SOG (a directory holding `meta.json`, or that `.json` file).
 fn load(path: &Path, limits: &LimitArgs) -> Result<(crate::scene::Format, Gaussians)> {
     let limits = Limits {
         max_gaussians: limits.max_gaussians,
         ..Limits::default()
     };
-    let bytes = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
-    let ext = path.extension().and_then(|e| e.to_str());
-    read_scene_bytes_detect(&bytes, ext, &limits)
-        .with_context(|| format!("cannot load scene {}", path.display()))
+    read_scene_path(path, &limits).with_context(|| format!("cannot load scene {}", path.display()))
 }
 
 fn info(path: &Path, limits: &LimitArgs) -> Result<()> {
@@ -728,7 +730,8 @@ fn info(path: &Path, limits: &LimitArgs) -> Result<()> {
         "sh_degree": g.sh_degree,
         "bounds": full_bounds(&g),
         "robust_bounds_2pct": robust_bounds(&g, 0.02),
-        "file_bytes": std::fs::metadata(path).map(|m| m.len()).ok(),
+        // A file's size (for an unbundled SOG: its meta.json's, none for its directory).
+        "file_bytes": std::fs::metadata(path).ok().filter(|m| m.is_file()).map(|m| m.len()),
     });
     println!("{}", serde_json::to_string_pretty(&json)?);
     Ok(())

@@ -125,17 +125,12 @@ fn reservation(
     cameras: Option<&std::path::Path>,
     limits: &Limits,
 ) -> Result<u64, ApiError> {
-    use std::io::Read;
     let len = std::fs::metadata(scene).map_err(ApiError::internal)?.len();
     if len == 0 {
         return Err(ApiError::unprocessable("the scene file is empty"));
     }
-    let mut prefix = Vec::new();
-    std::fs::File::open(scene)
-        .and_then(|f| f.take(cost::PROBE_BYTES as u64).read_to_end(&mut prefix))
-        .map_err(ApiError::internal)?;
     let hint = extension(scene_name);
-    let declared = cost::declared(&prefix, len, hint)?;
+    let declared = cost::declared_file(scene, hint)?;
     limits.check_count(declared.count)?;
     let cams = match cameras {
         Some(p) => {
@@ -433,7 +428,8 @@ pub async fn get_one(
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct FileQuery {
-    /// `ply`, `compressed_ply` (or `compressed-ply`), `splat` or `spz`.
+    /// `ply`, `compressed_ply` (or `compressed-ply`), `splat` or `spz`; `sog` only for an asset
+    /// stored as SOG (which is not written).
     format: Option<String>,
 }
 
@@ -441,7 +437,8 @@ pub struct FileQuery {
 fn requested_format(name: &str) -> ApiResult<Format> {
     Format::parse(&name.replace('-', "_")).ok_or_else(|| {
         ApiError::bad_request(format!(
-            "format {name:?}: expected ply, compressed_ply, splat or spz"
+            "format {name:?}: expected ply, compressed_ply, splat or spz (or sog for an asset \
+             stored as SOG)"
         ))
     })
 }
@@ -452,9 +449,10 @@ const MAX_WRITTEN_BYTES_PER_GAUSSIAN: u64 = 62 * 4;
 /// `GET /v1/assets/{id}/file[?format=ply|compressed_ply|splat|spz]` — the scene as stored (as
 /// uploaded for originals, INRIA binary PLY for watermarked assets), streamed; with `format`
 /// naming another format, converted to it (`scene::write_scene`: the quantised formats round
-/// as they do in every viewer — docs/RESULTS.md records what each keeps of a watermark). A
-/// conversion decodes the scene in memory, so it is admitted against the same memory budget
-/// and parsing slots as uploads.
+/// as they do in every viewer — docs/RESULTS.md records what each keeps of a watermark; SOG is
+/// read-only, so `format=sog` is 400 unless the asset is stored as SOG). A conversion decodes
+/// the scene in memory, so it is admitted against the same memory budget and parsing slots as
+/// uploads.
 pub async fn file(
     State(st): State<AppState>,
     caller: Caller,
@@ -470,6 +468,9 @@ pub async fn file(
         Some(name) => requested_format(name)?,
         None => stored,
     };
+    if to != stored && !to.is_writable() {
+        return Err(ApiError::bad_request(crate::scene::sog::READ_ONLY));
+    }
     let etag = if to == stored {
         format!("\"{}\"", a.sha256)
     } else {
@@ -538,13 +539,8 @@ async fn parse_need(
 ) -> ApiResult<u64> {
     let path = path.to_path_buf();
     tokio::task::spawn_blocking(move || {
-        use std::io::Read;
         let len = std::fs::metadata(&path).map_err(ApiError::internal)?.len();
-        let mut prefix = Vec::new();
-        std::fs::File::open(&path)
-            .and_then(|f| f.take(cost::PROBE_BYTES as u64).read_to_end(&mut prefix))
-            .map_err(ApiError::internal)?;
-        let declared = cost::declared(&prefix, len, Some(from.extension()))?;
+        let declared = cost::declared_file(&path, Some(from.extension()))?;
         limits.check_count(declared.count)?;
         Ok::<_, ApiError>(
             declared

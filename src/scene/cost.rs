@@ -2,12 +2,17 @@
 //! it from its parse budget before it reads the file (issue 13, defect 4), so the memory of the
 //! uploads being checked at once is bounded by the budget, whatever the files declare.
 
+use std::io::Read;
+use std::path::Path;
+
 use crate::scene::format::{Format, detect_format};
 use crate::scene::ply::{MAX_HEADER_BYTES, parse_header};
-use crate::scene::{SceneError, rest_len_for, splat, spz};
+use crate::scene::{SceneError, rest_len_for, sog, splat, spz, zip};
 
 /// How many of a file's first bytes [`declared`] needs: a whole PLY header, or enough of a
-/// compressed `.spz` stream for its 16-byte header (a zstd block is at most 128 KiB).
+/// compressed `.spz` stream for its 16-byte header (a zstd block is at most 128 KiB). A bundled
+/// SOG declares itself in `meta.json`, found from the ZIP's central directory at its end:
+/// [`declared_file`] reads that too.
 pub const PROBE_BYTES: usize = 1 << 20;
 
 /// Bytes of a decoded Gaussian besides its higher SH coefficients: position, log-scale,
@@ -43,9 +48,9 @@ pub struct Declared {
 impl Declared {
     /// An upper bound of the memory reading a file of `file_bytes` takes at its peak: the
     /// file's bytes, the decoded scene, the packed arrays an `.spz` or compressed PLY is
-    /// gathered into first (whose buffers may have grown to twice their size), and the
-    /// header's structures. Checked against a counting allocator in
-    /// `tests/parse_memory.rs`.
+    /// gathered into first (whose buffers may have grown to twice their size), a SOG's decoded
+    /// images and inflated entries ([`sog::read_overhead`]), and the header's structures.
+    /// Checked against a counting allocator in `tests/parse_memory.rs` (SOG aside).
     pub fn read_bytes(&self, file_bytes: u64) -> u64 {
         let scene = self
             .count
@@ -61,6 +66,7 @@ impl Declared {
                 .count
                 .saturating_mul(COMPRESSED_POINT_BYTES + self.rest_len)
                 .saturating_mul(2),
+            Format::Sog => sog::read_overhead(self.count, file_bytes),
             Format::Ply | Format::Splat => 0,
         };
         file_bytes
@@ -78,9 +84,37 @@ pub fn cameras_read_bytes(file_bytes: u64) -> u64 {
         .saturating_add(READ_OVERHEAD)
 }
 
+/// The format, Gaussian count and SH size the scene file at `path` declares: [`declared`] on its
+/// first [`PROBE_BYTES`], except for a ZIP archive (a bundled SOG) longer than that, whose
+/// central directory and `meta.json` are read instead (at most about 2 MiB, whatever its size).
+pub fn declared_file(path: &Path, hint_ext: Option<&str>) -> Result<Declared, SceneError> {
+    let io = |source| SceneError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let mut f = std::fs::File::open(path).map_err(io)?;
+    let len = f.metadata().map_err(io)?.len();
+    let mut prefix = Vec::new();
+    (&mut f)
+        .take(PROBE_BYTES as u64)
+        .read_to_end(&mut prefix)
+        .map_err(io)?;
+    if prefix.starts_with(&zip::LOCAL_MAGIC) && (prefix.len() as u64) < len {
+        let (count, degree) = sog::declared_in_file(&mut f, len)?;
+        return Ok(Declared {
+            format: Format::Sog,
+            count,
+            rest_len: rest_len_for(degree) as u64,
+        });
+    }
+    declared(&prefix, len, hint_ext)
+}
+
 /// The format, Gaussian count and SH size a scene file declares, from its first
 /// [`PROBE_BYTES`] (`prefix`; all of it when the file is shorter) and its length. Header errors
-/// are the reader's own; what the header does not say is checked when the file is read.
+/// are the reader's own; what the header does not say is checked when the file is read. A
+/// bundled SOG is read from its end: only a whole one is taken here (else
+/// [`SceneError::Unsupported`]; [`declared_file`] reads any).
 pub fn declared(
     prefix: &[u8],
     file_bytes: u64,
@@ -108,6 +142,17 @@ pub fn declared(
         Format::Spz => {
             let (count, degree) = spz::declared(prefix)?;
             (count, rest_len_for(degree.min(3)) as u64)
+        }
+        Format::Sog if (prefix.len() as u64) < file_bytes => {
+            return Err(SceneError::Unsupported(format!(
+                "a bundled SOG declares its size in meta.json, listed at the end of the archive: \
+                 the first {} of its {file_bytes} bytes do not say it",
+                prefix.len()
+            )));
+        }
+        Format::Sog => {
+            let (count, degree) = sog::declared(prefix)?;
+            (count, rest_len_for(degree) as u64)
         }
     };
     Ok(Declared {

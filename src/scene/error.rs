@@ -32,6 +32,8 @@ pub enum SceneError {
     DuplicateProperty(String),
     #[error("required property '{0}' is missing")]
     MissingProperty(String),
+    #[error("'{name}' is missing from {place}")]
+    MissingFile { name: String, place: String },
     #[error("Gaussian {index}: {field} is NaN or infinite")]
     NonFinite { index: usize, field: &'static str },
     #[error("Gaussian {index}: rotation quaternion has zero length")]

@@ -1,6 +1,6 @@
 //! Scene file formats: detection, limits and dispatch to the readers.
 //!
-//! Four formats are read, each into the same [`Gaussians`] (INRIA conventions, see
+//! Five formats are read, each into the same [`Gaussians`] (INRIA conventions, see
 //! `gaussians.rs`):
 //!
 //! | format | module | recognised by |
@@ -9,9 +9,12 @@
 //! | SuperSplat / PlayCanvas compressed PLY | [`compressed_ply`](crate::scene::compressed_ply) | `ply\n` magic + `chunk` element + `packed_position` |
 //! | antimatter15 `.splat` | [`splat`](crate::scene::splat) | `.splat` extension, size a multiple of 32 (no magic) |
 //! | Niantic `.spz` | [`spz`](crate::scene::spz) | gzip (`1f 8b`), zstd (`28 b5 2f fd`) or `NGSP` magic |
+//! | PlayCanvas SOG, bundled `.sog` | [`sog`](crate::scene::sog) | ZIP magic (`PK 03 04`) and a `meta.json` entry, or the `.sog` extension |
+//! | PlayCanvas SOG, unbundled | [`sog`](crate::scene::sog) | a path ([`read_scene_path`]): a directory holding `meta.json`, or a `.json` file |
 //!
-//! Every format is also written ([`write_scene`]): INRIA binary little-endian PLY losslessly
-//! ([`write_ply`]), the other three with their own quantisation.
+//! Every format but SOG is also written ([`write_scene`]): INRIA binary little-endian PLY
+//! losslessly ([`write_ply`]), the other three with their own quantisation; SOG is read-only
+//! ([`Format::is_writable`]).
 //!
 //! Every reader checks sizes against the file and the [`Limits`] before it allocates per-Gaussian
 //! storage, uses checked arithmetic on header-declared sizes, and returns a typed [`SceneError`]
@@ -28,7 +31,7 @@ use crate::scene::{Gaussians, SceneError, normalize_quat};
 ///
 /// Its name ([`Format::as_str`], the serde name) is the one stored in the database
 /// (`assets.format`) and shown in the API and in `splatmark info`: `ply`, `compressed_ply`,
-/// `splat`, `spz`. [`Format::parse`] and serde also accept `compressedply`, the name earlier
+/// `splat`, `spz`, `sog`. [`Format::parse`] and serde also accept `compressedply`, the name earlier
 /// versions printed.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -42,15 +45,18 @@ pub enum Format {
     Splat,
     /// Niantic `.spz` (versions 2 and 3 gzip, version 4 NGSP/zstd).
     Spz,
+    /// PlayCanvas SOG (`meta.json` + WebP images, bundled as a ZIP `.sog`); read-only.
+    Sog,
 }
 
 impl Format {
     /// Every format, in the order of the table above.
-    pub const ALL: [Format; 4] = [
+    pub const ALL: [Format; 5] = [
         Format::Ply,
         Format::CompressedPly,
         Format::Splat,
         Format::Spz,
+        Format::Sog,
     ];
 
     /// The canonical name, used in JSON, logs and the database (same as the serde name).
@@ -60,7 +66,13 @@ impl Format {
             Format::CompressedPly => "compressed_ply",
             Format::Splat => "splat",
             Format::Spz => "spz",
+            Format::Sog => "sog",
         }
+    }
+
+    /// Whether [`write_scene`] writes this format (every one but SOG).
+    pub const fn is_writable(self) -> bool {
+        !matches!(self, Format::Sog)
     }
 
     /// The format a name denotes: the canonical [`Format::as_str`] names, and `compressedply`
@@ -79,11 +91,12 @@ impl Format {
             Format::CompressedPly => "compressed.ply",
             Format::Splat => "splat",
             Format::Spz => "spz",
+            Format::Sog => "sog",
         }
     }
 
     /// The format a file name asks for by its extension (case-insensitive): `.compressed.ply`,
-    /// `.ply`, `.splat`, `.spz`; `None` for anything else.
+    /// `.ply`, `.splat`, `.spz`, `.sog`; `None` for anything else.
     pub fn from_path(path: &Path) -> Option<Format> {
         let name = path.file_name()?.to_str()?.to_ascii_lowercase();
         [
@@ -91,6 +104,7 @@ impl Format {
             Format::Ply,
             Format::Splat,
             Format::Spz,
+            Format::Sog,
         ]
         .into_iter()
         .find(|f| name.ends_with(&format!(".{}", f.extension())))
@@ -155,7 +169,9 @@ pub(crate) const NGSP_MAGIC: [u8; 4] = *b"NGSP";
 /// (which has no magic). `hint_ext` may be `"splat"`, `".splat"` or a whole file name.
 ///
 /// PLY files are told apart (INRIA vs compressed) from their header, which is parsed here;
-/// header errors are returned as they are.
+/// header errors are returned as they are. A ZIP archive is a bundled SOG when its central
+/// directory (at its end: `bytes` must be the whole file) lists `meta.json`, or when the hint is
+/// `.sog` (the reader then says what is wrong with it).
 pub fn detect_format(bytes: &[u8], hint_ext: Option<&str>) -> Result<Format, SceneError> {
     if bytes.starts_with(b"ply\n") || bytes.starts_with(b"ply\r\n") {
         let header = crate::scene::ply::parse_header(bytes)?;
@@ -171,13 +187,23 @@ pub fn detect_format(bytes: &[u8], hint_ext: Option<&str>) -> Result<Format, Sce
     {
         return Ok(Format::Spz);
     }
+    if bytes.starts_with(&crate::scene::zip::LOCAL_MAGIC) {
+        if hint_is(hint_ext, "sog") || crate::scene::sog::is_bundle(bytes) {
+            return Ok(Format::Sog);
+        }
+        return Err(SceneError::UnknownFormat(
+            "a ZIP archive without meta.json at its root (a bundled SOG holds meta.json and its \
+             images)"
+                .into(),
+        ));
+    }
     if hint_is(hint_ext, "splat") {
         // The splat reader reports a size that is not a multiple of 32 as a typed error.
         return Ok(Format::Splat);
     }
     let shown: Vec<String> = bytes.iter().take(8).map(|b| format!("{b:02x}")).collect();
     Err(SceneError::UnknownFormat(format!(
-        "no PLY, gzip, zstd or NGSP magic (first bytes: {}){}",
+        "no PLY, gzip, zstd, NGSP or ZIP magic (first bytes: {}){}",
         if shown.is_empty() {
             "none, the file is empty".to_string()
         } else {
@@ -198,9 +224,23 @@ fn hint_is(hint: Option<&str>, ext: &str) -> bool {
 }
 
 /// Reads a scene file: checks its size against `limits.max_file_bytes` first (from the
-/// file's metadata, before reading it), then detects the format and decodes it.
+/// file's metadata, before reading it), then detects the format and decodes it. See
+/// [`read_scene_path`] for the paths taken.
 pub fn read_scene(path: impl AsRef<Path>, limits: &Limits) -> Result<Gaussians, SceneError> {
-    let path = path.as_ref();
+    read_scene_path(path.as_ref(), limits).map(|(_, g)| g)
+}
+
+/// Reads the scene at `path`, returning its format too: an unbundled SOG when `path` is a
+/// directory (its `meta.json`) or a `.json` file (`meta.json`, the images beside it; each file's
+/// size checked against `limits.max_file_bytes`), otherwise a scene file as [`read_scene_bytes`]
+/// reads it, its size checked before it is read.
+pub fn read_scene_path(path: &Path, limits: &Limits) -> Result<(Format, Gaussians), SceneError> {
+    if let Some(meta) = crate::scene::sog::meta_path(path) {
+        return Ok((
+            Format::Sog,
+            crate::scene::sog::read_unbundled(&meta, limits)?,
+        ));
+    }
     let io_err = |source| SceneError::Io {
         path: path.to_path_buf(),
         source,
@@ -209,11 +249,11 @@ pub fn read_scene(path: impl AsRef<Path>, limits: &Limits) -> Result<Gaussians, 
     limits.check_file_size(meta.len())?;
     let bytes = std::fs::read(path).map_err(io_err)?;
     let ext = path.extension().and_then(|e| e.to_str());
-    read_scene_bytes(&bytes, ext, limits)
+    read_scene_bytes_detect(&bytes, ext, limits)
 }
 
 /// Decodes a scene held in memory. `hint_ext` is the file's extension (or name), used only to
-/// recognise `.splat`, which has no magic number.
+/// recognise `.splat`, which has no magic number, and a `.sog` whose directory is damaged.
 pub fn read_scene_bytes(
     bytes: &[u8],
     hint_ext: Option<&str>,
@@ -241,6 +281,7 @@ pub fn read_as(bytes: &[u8], format: Format, limits: &Limits) -> Result<Gaussian
         Format::Ply | Format::CompressedPly => crate::scene::ply::read(bytes, limits)?,
         Format::Splat => crate::scene::splat::read(bytes, limits)?,
         Format::Spz => crate::scene::spz::read(bytes, limits)?,
+        Format::Sog => crate::scene::sog::read(bytes, limits)?,
     };
     debug_assert!(g.validate().is_ok());
     Ok(g)
@@ -249,7 +290,8 @@ pub fn read_as(bytes: &[u8], format: Format, limits: &Limits) -> Result<Gaussian
 /// Writes `g` (validated first) in `format`: [`write_ply`] (lossless), or one of the
 /// quantised formats viewers load ([`compressed_ply::encode`](crate::scene::compressed_ply::encode),
 /// [`splat::encode`](crate::scene::splat::encode), [`spz::encode`](crate::scene::spz::encode):
-/// each documents what it rounds).
+/// each documents what it rounds). SOG is not written: [`SceneError::Unsupported`] with
+/// [`sog::READ_ONLY`](crate::scene::sog::READ_ONLY).
 pub fn write_scene<W: Write>(
     g: &Gaussians,
     format: Format,
@@ -262,6 +304,11 @@ pub fn write_scene<W: Write>(
         Format::CompressedPly => compressed_ply::encode(g),
         Format::Splat => splat::encode(g),
         Format::Spz => spz::encode(g)?,
+        Format::Sog => {
+            return Err(SceneError::Unsupported(
+                crate::scene::sog::READ_ONLY.to_string(),
+            ));
+        }
     };
     writer.write_all(&bytes).map_err(SceneError::IoPlain)?;
     writer.flush().map_err(SceneError::IoPlain)
@@ -406,12 +453,8 @@ mod tests {
         assert_eq!(Format::parse(""), None);
         assert_eq!(serde_json::to_string(&Format::Splat).unwrap(), "\"splat\"");
         assert_eq!(serde_json::to_string(&Format::Spz).unwrap(), "\"spz\"");
-        for f in [
-            Format::Ply,
-            Format::CompressedPly,
-            Format::Splat,
-            Format::Spz,
-        ] {
+        assert_eq!(serde_json::to_string(&Format::Sog).unwrap(), "\"sog\"");
+        for f in Format::ALL {
             let s = serde_json::to_string(&f).unwrap();
             assert_eq!(s, format!("\"{}\"", f.as_str()));
             assert_eq!(serde_json::from_str::<Format>(&s).unwrap(), f);
@@ -693,7 +736,7 @@ mod writer_tests {
     #[test]
     fn every_format_is_written_and_reads_back_within_its_quantisation() {
         let g = synthetic(700, 3, 41);
-        for format in Format::ALL {
+        for format in Format::ALL.into_iter().filter(|f| f.is_writable()) {
             let mut bytes = Vec::new();
             write_scene(&g, format, &mut bytes).unwrap();
             let back = read_scene_bytes(&bytes, Some(format.extension()), &Limits::default())
@@ -721,6 +764,7 @@ mod writer_tests {
                 Format::CompressedPly => (0.01, 0.02),
                 // 1/4096 of a unit; colour 1/(0.15·255) in DC.
                 Format::Spz => (1.0 / 8192.0 + 1e-6, 0.014),
+                Format::Sog => unreachable!("SOG is not written"),
             };
             assert!(pos <= pos_tol, "{format}: positions off by {pos}");
             assert!(dc <= dc_tol, "{format}: colours off by {dc}");
@@ -734,11 +778,28 @@ mod writer_tests {
             ("b.compressed.ply", Some(Format::CompressedPly)),
             ("C.SPLAT", Some(Format::Splat)),
             ("dir.ply/d.spz", Some(Format::Spz)),
+            ("scene.SOG", Some(Format::Sog)),
             ("e.ksplat", None),
             ("ply", None),
         ] {
             assert_eq!(Format::from_path(Path::new(name)), f, "{name}");
         }
+    }
+
+    #[test]
+    fn sog_is_read_only() {
+        let g = synthetic(3, 0, 1);
+        let mut out = Vec::new();
+        let e = write_scene(&g, Format::Sog, &mut out).unwrap_err();
+        assert!(matches!(e, SceneError::Unsupported(_)), "{e}");
+        assert!(e.to_string().contains("SOG is read-only"), "{e}");
+        assert!(out.is_empty());
+        assert!(!Format::Sog.is_writable());
+        assert!(
+            Format::ALL
+                .iter()
+                .all(|&f| f.is_writable() == (f != Format::Sog))
+        );
     }
 
     #[test]

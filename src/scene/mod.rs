@@ -1,5 +1,5 @@
 //! Scenes: the Gaussian model, the file formats people have (INRIA PLY, SuperSplat compressed
-//! PLY, antimatter15 `.splat`, Niantic `.spz`) and cameras (INRIA `cameras.json`, NeRF
+//! PLY, antimatter15 `.splat`, Niantic `.spz`, PlayCanvas SOG) and cameras (INRIA `cameras.json`, NeRF
 //! `transforms.json`, LLFF `poses_bounds.npy`, orbit views).
 
 mod error;
@@ -13,9 +13,11 @@ pub mod cost;
 pub mod format;
 pub mod orbit;
 pub mod ply;
+pub mod sog;
 pub mod splat;
 pub mod spz;
 pub mod synthetic;
+pub mod zip;
 
 pub use camera::Camera;
 pub use error::SceneError;

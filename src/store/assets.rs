@@ -12,11 +12,12 @@ use uuid::Uuid;
 
 /// Scene formats an asset may have: the scene reader's names ([`Format::as_str`]), so that what
 /// the reader detects is always what the database accepts.
-pub const SCENE_FORMATS: [&str; 4] = [
+pub const SCENE_FORMATS: [&str; 5] = [
     Format::ALL[0].as_str(),
     Format::ALL[1].as_str(),
     Format::ALL[2].as_str(),
     Format::ALL[3].as_str(),
+    Format::ALL[4].as_str(),
 ];
 const MAX_NAME: usize = 255;
 
@@ -59,8 +60,8 @@ pub struct NewAsset {
     pub source_job_id: Option<Uuid>,
     /// The scene file.
     pub blob: BlobRef,
-    /// "ply", "compressed_ply", "splat" or "spz" ([`Format::as_str`]; [`Format::parse`]'s other
-    /// spellings are accepted and stored under the canonical name).
+    /// "ply", "compressed_ply", "splat", "spz" or "sog" ([`Format::as_str`];
+    /// [`Format::parse`]'s other spellings are accepted and stored under the canonical name).
     pub format: String,
     /// The name the owner gave the file (shown back, never used as a path).
     pub file_name: Option<String>,

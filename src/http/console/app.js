@@ -108,7 +108,7 @@ async function assetsPage() {
   const list = h("div", {}, h("p", { class: "muted" }, "Loading…"));
   const progress = h("progress", { id: "upload-progress", max: 100, value: 0, hidden: true });
   const status = h("div", { id: "upload-status" });
-  const scene = h("input", { type: "file", id: "upload-scene", accept: ".ply,.splat,.spz" });
+  const scene = h("input", { type: "file", id: "upload-scene", accept: ".ply,.splat,.spz,.sog" });
   const cams = h("input", { type: "file", id: "upload-cameras", accept: ".json,.npy" });
   const form = h("form", {
     id: "upload-form",
@@ -143,7 +143,7 @@ async function assetsPage() {
       };
       xhr.send(fd);
     },
-  }, h("label", {}, "Scene (.ply, compressed .ply, .splat, .spz) ", scene),
+  }, h("label", {}, "Scene (.ply, compressed .ply, .splat, .spz, bundled .sog) ", scene),
      h("label", {}, "Cameras (optional: cameras.json, transforms.json, poses_bounds.npy) ", cams),
      h("button", { type: "submit", id: "upload" }, "Upload"), progress, status);
 
@@ -311,7 +311,9 @@ async function assetPage(id) {
      ["Gaussians", a.gaussians.toLocaleString()], ["SH degree", a.sh_degree], ["created", a.created_at],
      ["sha256", a.sha256], ["cameras", a.cameras_format || "none (orbit views)"]]
       .map(([k, v]) => h("tr", {}, h("th", {}, k), h("td", { class: k === "sha256" ? "mono" : "" }, String(v))))),
-    h("p", {}, "Download: ", ["ply", "compressed_ply", "splat", "spz"].map((f) => h("button", {
+    h("p", {}, "Download: ", ["ply", "compressed_ply", "splat", "spz"]
+      // SOG is read-only: offered only for an asset stored as SOG.
+      .concat(a.format === "sog" ? ["sog"] : []).map((f) => h("button", {
       type: "button", class: "secondary", id: `dl-${f}`,
       onclick: async () => {
         try {
