@@ -158,7 +158,10 @@ pub struct FinetuneConfig {
     /// (after the same ramp), with this probability the watermark loss reads the step's views
     /// with a random fraction — uniform in [0, `eot_remove_max`] — of the Gaussians removed
     /// (a replay recomposites without them, [`crate::render::Replay::without`]); the visual
-    /// loss and the fidelity bound always see the whole scene. 0 = off.
+    /// loss and the fidelity bound always see the whole scene. 0 = off. Default 0.5 with at
+    /// most 30 % removed: measured at 512² (docs/RESULTS.md, "Removing Gaussians in the EOT
+    /// term") plant's remove 20 % went 98.2 → 99.2 / 98.7 % (two payloads) and parameter noise
+    /// up 2–4 points, every other column within its noise, for 6 % more CPU time.
     pub eot_remove_probability: f32,
     /// Largest fraction of the Gaussians `eot_remove_probability` removes.
     pub eot_remove_max: f32,
@@ -195,6 +198,8 @@ impl FinetuneConfig {
             per_view_loss: false,
             lr: LearningRates::inria(),
             coupled: false,
+            // The paper's EOT is over image attacks only.
+            eot_remove_probability: 0.0,
             ..Self::default()
         }
     }
@@ -224,7 +229,7 @@ impl Default for FinetuneConfig {
             wm_geometry: false,
             wm_lr_min_fraction: 0.1,
             eot_ramp: 0.3,
-            eot_remove_probability: 0.0,
+            eot_remove_probability: 0.5,
             eot_remove_max: 0.3,
             dwt_levels: 2,
             background: [0.0; 3],
