@@ -128,6 +128,17 @@ async fn an_owner_watermarks_looks_verifies_and_audits_in_the_console() {
     assert!(title.starts_with("Gaussian "), "{title}");
     b.screenshot(&shots, "4-attribution").await;
 
+    // Back on the original's page, its jobs list the finished job and link its result.
+    b.click(&b.find("#parent-link", wait).await).await;
+    b.find(&format!("#jobs-table a[href='#/asset/{marked_id}']"), wait)
+        .await;
+    assert_eq!(
+        b.script("return document.querySelector('#jobs-table td[data-state]').dataset.state")
+            .await,
+        serde_json::json!("done")
+    );
+    b.screenshot(&shots, "4b-jobs").await;
+
     // Verify four renders of the watermarked scene through the verification page.
     let r = t
         .get(&t.admin, &format!("/v1/assets/{marked_id}/file"))

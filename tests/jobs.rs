@@ -253,6 +253,25 @@ async fn upload_watermark_download_render_verify_round_trip() {
         .await
         .unwrap();
     assert_eq!(rest["items"][0]["id"], id.as_str(), "{rest}");
+    // The original lists the job that made the watermarked asset (what the console shows on
+    // the asset's page); nobody else sees it, and a bad limit is refused.
+    let jobs: Value = t
+        .get(&k.owner, &format!("/v1/assets/{id}/jobs"))
+        .await
+        .json()
+        .await
+        .unwrap();
+    let listed = jobs["jobs"].as_array().unwrap();
+    assert_eq!(listed.len(), 1, "{jobs}");
+    assert_eq!(listed[0]["id"], job_id.as_str());
+    assert_eq!(listed[0]["state"], "done");
+    assert_eq!(listed[0]["result_asset_id"], marked_id);
+    let r = t.get(&stranger, &format!("/v1/assets/{id}/jobs")).await;
+    assert_problem(r, StatusCode::NOT_FOUND).await;
+    let r = t
+        .get(&k.owner, &format!("/v1/assets/{id}/jobs?limit=0"))
+        .await;
+    assert_problem(r, StatusCode::BAD_REQUEST).await;
 
     // The audit log holds every step and its chain verifies.
     let audit: Value = t

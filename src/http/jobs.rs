@@ -1,9 +1,10 @@
-//! `POST /v1/assets/{id}/watermark` (enqueue, honouring `Idempotency-Key`) and `/v1/jobs/{id}`
-//! (state, phase, progress, ETA; `DELETE` cancels).
+//! `POST /v1/assets/{id}/watermark` (enqueue, honouring `Idempotency-Key`), `GET
+//! /v1/assets/{id}/jobs` (an asset's jobs, newest first) and `/v1/jobs/{id}` (state, phase,
+//! progress, ETA; `DELETE` cancels).
 
 use axum::Json;
 use axum::extract::rejection::JsonRejection;
-use axum::extract::{Path, State};
+use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use serde::Deserialize;
@@ -11,7 +12,7 @@ use serde_json::json;
 use uuid::Uuid;
 
 use super::AppState;
-use super::assets::readable;
+use super::assets::{parse_id, readable};
 use super::auth::Caller;
 use super::error::{ApiError, ApiResult};
 use crate::queue::{JobOptions, available_bits};
@@ -147,6 +148,38 @@ async fn own_job(st: &AppState, caller: &Caller, id: &str) -> ApiResult<Job> {
         .may_read(&job.owner)
         .map_err(|_| ApiError::not_found("job"))?;
     Ok(job)
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct JobsQuery {
+    /// At most this many (1–200, default 50).
+    pub limit: Option<u32>,
+}
+
+/// `GET /v1/assets/{id}/jobs` — the jobs started on an asset the caller may read, newest first
+/// (those of other owners left out).
+pub async fn of_asset(
+    State(st): State<AppState>,
+    caller: Caller,
+    Path(id): Path<String>,
+    Query(q): Query<JobsQuery>,
+) -> ApiResult<Response> {
+    let limit = q.limit.unwrap_or(50);
+    if !(1..=200).contains(&limit) {
+        return Err(ApiError::bad_request(format!(
+            "limit {limit}: expected 1 to 200"
+        )));
+    }
+    let a = readable(&st, &caller, parse_id(&id)?).await?;
+    let jobs: Vec<Job> = st
+        .store
+        .jobs_of(a.id, limit)
+        .await?
+        .into_iter()
+        .filter(|j| caller.may_read(&j.owner).is_ok())
+        .collect();
+    Ok(Json(json!({ "jobs": jobs })).into_response())
 }
 
 /// `GET /v1/jobs/{id}`.

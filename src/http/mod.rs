@@ -220,6 +220,7 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/assets/{id}", get(assets::get_one))
         .route("/v1/assets/{id}/file", get(assets::file))
         .route("/v1/assets/{id}/watermark", post(jobs::watermark))
+        .route("/v1/assets/{id}/jobs", get(jobs::of_asset))
         .route("/v1/assets/{id}/attribution", get(attribution::attribution))
         .route(
             "/v1/assets/{id}/attribution/summary",

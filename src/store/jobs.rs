@@ -293,6 +293,20 @@ impl Store {
         fetch_job(&mut conn, &id.to_string()).await
     }
 
+    /// The jobs of `asset`, newest first, at most `limit` (1–1000).
+    pub async fn jobs_of(&self, asset: Uuid, limit: u32) -> Result<Vec<Job>> {
+        let sql = format!(
+            "SELECT {JOB_COLUMNS} FROM jobs WHERE asset_id = ? \
+             ORDER BY created_at DESC, id DESC LIMIT ?"
+        );
+        let rows = sqlx::query(sqlx::AssertSqlSafe(sql))
+            .bind(asset.to_string())
+            .bind(i64::from(limit.clamp(1, 1000)))
+            .fetch_all(&self.pool)
+            .await?;
+        rows.iter().map(decode_job).collect()
+    }
+
     /// The job `owner` queued under `key`, if any (lets the HTTP layer answer a retried request
     /// before drawing a fresh random message for it).
     pub async fn job_by_idempotency_key(&self, owner: &str, key: &str) -> Result<Option<Job>> {

@@ -206,6 +206,25 @@ function jobPanel(id) {
   return panel;
 }
 
+/** The jobs started on `asset`, newest first; "watch" opens a job's live panel in `where` (a
+ * queued or running one opens there by itself), so a job can be found again after leaving. */
+function jobsList(asset, where) {
+  const list = h("div", { id: "job-list" }, h("p", { class: "muted" }, "Loading…"));
+  api(`/v1/assets/${asset.id}/jobs`).then(({ jobs }) => {
+    if (!jobs.length) { list.replaceChildren(h("p", { class: "muted" }, "No job yet.")); return; }
+    list.replaceChildren(h("table", { id: "jobs-table" },
+      h("tr", {}, ["started", "state", "payload", "progress", ""].map((t) => h("th", {}, t))),
+      jobs.map((j) => h("tr", {},
+        h("td", {}, j.created_at), h("td", { "data-state": j.state }, j.state), h("td", {}, `${j.bits} bits`),
+        h("td", {}, `step ${j.step || 0} of ${j.total || "?"}`),
+        h("td", {}, j.result_asset_id ? h("a", { href: `#/asset/${j.result_asset_id}` }, "result") : null, " ",
+          h("button", { type: "button", class: "secondary", onclick: () => where.replaceChildren(jobPanel(j.id)) }, "watch"))))));
+    const live = jobs.find((j) => j.state === "queued" || j.state === "running");
+    if (live && !where.firstChild) where.replaceChildren(jobPanel(live.id));
+  }).catch((e) => list.replaceChildren(errorBox(e)));
+  return card("Jobs", list);
+}
+
 function watermarkForm(asset, where) {
   const bits = h("select", { id: "wm-bits" }, [32, 48, 64].map((b) => h("option", { value: b }, `${b} bits`)));
   const steps = h("input", { type: "text", id: "wm-steps", placeholder: "default (300)", inputmode: "numeric" });
@@ -326,7 +345,7 @@ async function assetPage(id) {
     parts.push(card("Versions", a.watermarked.length
       ? h("ul", { id: "versions" }, a.watermarked.map((w) => h("li", {}, h("a", { href: `#/asset/${w}` }, w))))
       : h("p", { class: "muted" }, "No watermarked version yet.")));
-    parts.push(watermarkForm(a, jobs), jobs);
+    parts.push(watermarkForm(a, jobs), jobs, jobsList(a, jobs));
   } else {
     parts.push(card("Made from", h("a", { href: `#/asset/${a.parent_id}`, id: "parent-link" }, a.parent_id),
       a.source_job_id ? h("span", { class: "muted" }, ` by job ${a.source_job_id}`) : null));
