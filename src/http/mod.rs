@@ -182,6 +182,7 @@ pub const ROUTES: &[(&str, &str)] = &[
     ("get", "/v1/assets/{id}"),
     ("get", "/v1/assets/{id}/file"),
     ("post", "/v1/assets/{id}/watermark"),
+    ("get", "/v1/assets/{id}/jobs"),
     ("get", "/v1/assets/{id}/attribution"),
     ("get", "/v1/assets/{id}/attribution/summary"),
     ("get", "/v1/assets/{id}/attribution/picture"),
