@@ -438,7 +438,7 @@ fn paper_cmd(a: &PaperArgs, progress: super::progress::ProgressMode) -> Result<(
 
 #[derive(Args, Debug)]
 pub struct QualityArgs {
-    /// The CI variant: donut, 32 bits, 128² renders, 8 training and 4 unseen views.
+    /// The CI variant: donut, 32 bits, 128² renders, 16 orbit views (14 trained) and 4 unseen views.
     #[arg(long)]
     quick: bool,
     /// Folder holding donut/, plant/ and udon/.
