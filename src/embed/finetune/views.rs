@@ -245,11 +245,10 @@ impl<'a> Renderer<'a> {
                 *o = -40.0;
             }
         }
-        let saved = self.replays.take();
-        let frame = self.render(&masked, v);
-        self.replays = saved;
+        // No replay of view `v` exists (or may be recorded): this rasterises.
+        let frame = self.render(&masked, v)?;
         Ok(Frame::Masked {
-            frame: Box::new(frame?),
+            frame: Box::new(frame),
             scene: Box::new(masked),
         })
     }
