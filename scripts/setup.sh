@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Installs what a fresh Debian machine needs besides the Rust toolchain: Mesa's software Vulkan
 # driver (lavapipe) so that wgpu finds an adapter without a GPU, and curl + python3 for the crash
-# soak (scripts/crash-soak.sh, run small by tests/crash_soak.rs), and Chromium with chromedriver for
-# the web console's browser test (tests/console.rs). Safe to run again.
+# soak (scripts/crash-soak.sh, run small by tests/crash_soak.rs), Chromium with chromedriver for
+# the web console's browser test (tests/console.rs), and PostgreSQL's server for the tests'
+# PostgreSQL pass. Safe to run again.
 set -euo pipefail
 need=()
 dpkg -s mesa-vulkan-drivers >/dev/null 2>&1 || need+=(mesa-vulkan-drivers)
@@ -11,6 +12,9 @@ command -v curl >/dev/null 2>&1 || need+=(curl)
 command -v python3 >/dev/null 2>&1 || need+=(python3)
 command -v chromium >/dev/null 2>&1 || need+=(chromium)
 command -v chromedriver >/dev/null 2>&1 || need+=(chromium-driver)
+# PostgreSQL's server for the second pass of the store and service tests (scripts/test.sh,
+# scripts/pg-test-server.sh); the package's own cluster is not used.
+ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1 || need+=(postgresql)
 if [ ${#need[@]} -gt 0 ]; then
   if command -v apt-get >/dev/null 2>&1; then
     sudo_cmd=""

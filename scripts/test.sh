@@ -13,3 +13,15 @@ fi
 # Mesa's software Vulkan driver complains on stderr when there is no runtime directory.
 export XDG_RUNTIME_DIR="${XDG_RUNTIME_DIR:-$(mktemp -d)}"
 cargo test --locked
+
+# The store, the service and the job suites once more on PostgreSQL (issue 17): a throwaway
+# server (scripts/pg-test-server.sh), one new database per test.
+if pg=$(bash scripts/pg-test-server.sh start); then
+  pg_dir=${pg%% *}
+  trap 'bash scripts/pg-test-server.sh stop "$pg_dir"' EXIT
+  echo "PostgreSQL pass: ${pg#* }" >&2
+  SPLATMARK_TEST_POSTGRES=${pg#* } cargo test --locked --lib store::
+  SPLATMARK_TEST_POSTGRES=${pg#* } cargo test --locked --test service --test jobs --test hostile_input
+else
+  echo "SKIPPED: the PostgreSQL pass (no PostgreSQL server could start; see above)" >&2
+fi

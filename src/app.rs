@@ -41,9 +41,15 @@ impl App {
         std::fs::create_dir_all(&cfg.data_dir)
             .with_context(|| format!("cannot create {}", cfg.data_dir.display()))?;
         let lock = DataDirLock::acquire(&cfg.data_dir, LockMode::Shared)?;
-        let store = Store::open(&cfg.data_dir, master)
+        let database = cfg.database();
+        let store = Store::open_with(&cfg.data_dir, &database, master)
             .await
-            .with_context(|| format!("cannot open the store in {}", cfg.data_dir.display()))?;
+            .with_context(|| {
+                format!(
+                    "cannot open the store ({database}, blobs in {})",
+                    cfg.data_dir.display()
+                )
+            })?;
         let admin_token_file = bootstrap_admin(&store, &cfg).await?;
         let listener = tokio::net::TcpListener::bind(cfg.bind)
             .await

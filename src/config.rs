@@ -67,6 +67,9 @@ pub struct Config {
     pub bind: SocketAddr,
     /// SQLite database (`splatmark.db`), blobs (`blobs/`), master key and bootstrap token.
     pub data_dir: PathBuf,
+    /// The database (`sqlite://PATH` or `postgres://USER:PASSWORD@HOST:PORT/DB`); `None`:
+    /// `DATA_DIR/splatmark.db`. Blobs stay in `DATA_DIR/blobs/`. Never printed with its password.
+    pub database_url: Option<crate::store::Database>,
     /// Number of workers; `None`: one per GPU adapter, or one CPU worker.
     pub workers: Option<usize>,
     pub device: DevicePolicy,
@@ -137,6 +140,13 @@ pub struct Config {
 pub const MAX_UPLOAD_MEMORY_MB: u64 = 1 << 22;
 
 impl Config {
+    /// The database the store opens: `database_url`, or `DATA_DIR/splatmark.db`.
+    pub fn database(&self) -> crate::store::Database {
+        self.database_url
+            .clone()
+            .unwrap_or_else(|| crate::store::Database::in_data_dir(&self.data_dir))
+    }
+
     /// The upload memory budget in KiB (the unit of [`crate::http::AppState::upload_memory`]).
     pub fn upload_memory_kib(&self) -> u64 {
         self.upload_memory_mb.min(MAX_UPLOAD_MEMORY_MB) * 1024
@@ -148,6 +158,7 @@ impl Default for Config {
         Self {
             bind: SocketAddr::from(([127, 0, 0, 1], 8080)),
             data_dir: PathBuf::from("data"),
+            database_url: None,
             workers: None,
             device: DevicePolicy::Auto,
             max_upload_bytes: 1 << 30,
@@ -249,6 +260,15 @@ impl Config {
         }
         env!("SPLATMARK_BIND", self.bind);
         env!("SPLATMARK_DATA_DIR", self.data_dir);
+        if let Some(v) = get("SPLATMARK_DATABASE_URL") {
+            // Parsed here, not by `env!`: its error would repeat the value, password and all.
+            let db = crate::store::Database::parse(&v).map_err(|e| ConfigError::Env {
+                name: "SPLATMARK_DATABASE_URL",
+                value: crate::store::database::redact(&v),
+                message: e.to_string(),
+            })?;
+            self.database_url = Some(db);
+        }
         env!("SPLATMARK_WORKERS", some self.workers);
         if let Some(v) = get("SPLATMARK_DEVICE") {
             self.device = match v.trim() {
@@ -408,5 +428,39 @@ mod tests {
             ..Config::default()
         };
         assert!(c.validate().is_err());
+    }
+
+    #[test]
+    fn the_database_url_is_read_and_its_password_never_shown() {
+        use crate::store::{Backend, Database};
+        let dir = tempfile::tempdir().unwrap();
+        let c = Config {
+            data_dir: dir.path().into(),
+            ..Config::default()
+        };
+        assert_eq!(c.database(), Database::in_data_dir(dir.path()));
+        let url = "postgres://app:hunter2@db.internal:5432/sm";
+        let c = c.with_env(env(&[("SPLATMARK_DATABASE_URL", url)])).unwrap();
+        assert_eq!(c.database().backend(), Backend::Postgres);
+        for shown in [format!("{c:?}"), toml::to_string(&c).unwrap()] {
+            assert!(!shown.contains("hunter2"), "{shown}");
+        }
+        let f = dir.path().join("s.toml");
+        std::fs::write(&f, format!("database_url = \"{url}\"\n")).unwrap();
+        assert_eq!(
+            Config::from_file(Some(&f)).unwrap().database().backend(),
+            Backend::Postgres
+        );
+        let e = Config::default()
+            .with_env(env(&[(
+                "SPLATMARK_DATABASE_URL",
+                "mysql://app:hunter2@h/db",
+            )]))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("SPLATMARK_DATABASE_URL") && !e.contains("hunter2"),
+            "{e}"
+        );
     }
 }

@@ -491,22 +491,7 @@ async fn an_upload_whose_insert_fails_leaves_no_blob_behind() {
     assert_eq!(before.len(), 1, "{before:?}");
 
     // The database refuses every new asset row (as a full disk or a broken file would).
-    let db = sqlx::sqlite::SqlitePoolOptions::new()
-        .max_connections(1)
-        .connect_with(
-            sqlx::sqlite::SqliteConnectOptions::new()
-                .filename(t.data().join("splatmark.db"))
-                .busy_timeout(Duration::from_secs(5)),
-        )
-        .await
-        .unwrap();
-    sqlx::query(
-        "CREATE TRIGGER refuse_assets BEFORE INSERT ON assets \
-         BEGIN SELECT RAISE(ABORT, 'refused by the test'); END",
-    )
-    .execute(&db)
-    .await
-    .unwrap();
+    t.refuse_inserts("assets").await;
 
     // A new scene, with cameras: neither blob stays. The same bytes as a stored asset: that
     // asset's blob stays.
@@ -536,11 +521,7 @@ async fn an_upload_whose_insert_fails_leaves_no_blob_behind() {
     assert_problem(r, StatusCode::INTERNAL_SERVER_ERROR).await;
     assert_eq!(stored_blobs(&t.data()), before);
 
-    sqlx::query("DROP TRIGGER refuse_assets")
-        .execute(&db)
-        .await
-        .unwrap();
-    db.close().await;
+    t.allow_inserts("assets").await;
     let f = t.get(&k.owner, &format!("/v1/assets/{kept_id}/file")).await;
     assert_eq!(f.status(), StatusCode::OK);
     assert!(f.bytes().await.unwrap() == kept);

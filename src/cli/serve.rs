@@ -136,7 +136,12 @@ pub(crate) fn keys_cmd(c: &KeysCommand) -> Result<()> {
         .build()?;
     rt.block_on(async {
         std::fs::create_dir_all(&cfg.data_dir)?;
-        let store = Store::open(&cfg.data_dir, crate::app::master_key(&cfg)?).await?;
+        let store = Store::open_with(
+            &cfg.data_dir,
+            &cfg.database(),
+            crate::app::master_key(&cfg)?,
+        )
+        .await?;
         let (key, token) = store.create_api_key("cli", name, &scopes).await?;
         eprintln!(
             "created API key {} ({}) with scopes {:?}",
@@ -167,6 +172,28 @@ pub(crate) struct RestoreArgs {
     serve: ServeArgs,
 }
 
+/// `backup` and `restore` copy an SQLite file and the blobs: a PostgreSQL database is backed up
+/// with the server's own tools.
+fn sqlite_only(cfg: &Config, command: &str) -> Result<()> {
+    let db = cfg.database();
+    match db {
+        crate::store::Database::Sqlite(ref path)
+            if *path == cfg.data_dir.join(crate::store::DB_FILE) =>
+        {
+            Ok(())
+        }
+        crate::store::Database::Sqlite(_) => anyhow::bail!(
+            "`{command}` works on DATA_DIR/{} only; the configured database is {db}",
+            crate::store::DB_FILE
+        ),
+        crate::store::Database::Postgres(_) => anyhow::bail!(
+            "`{command}` copies an SQLite database; the configured database is {db}: back it up \
+             with pg_dump / pg_basebackup (and the blob folder {} alongside)",
+            cfg.data_dir.join(crate::store::BLOB_DIR).display()
+        ),
+    }
+}
+
 fn runtime() -> Result<tokio::runtime::Runtime> {
     Ok(tokio::runtime::Builder::new_current_thread()
         .enable_all()
@@ -175,6 +202,7 @@ fn runtime() -> Result<tokio::runtime::Runtime> {
 
 pub(crate) fn backup_cmd(a: &BackupArgs) -> Result<()> {
     let cfg = a.serve.config()?;
+    sqlite_only(&cfg, "backup")?;
     let m = runtime()?.block_on(crate::store::backup::backup(&cfg.data_dir, &a.out))?;
     eprintln!(
         "backed up {} assets, {} blobs and {} audit rows to {}",
@@ -189,6 +217,7 @@ pub(crate) fn backup_cmd(a: &BackupArgs) -> Result<()> {
 
 pub(crate) fn restore_cmd(a: &RestoreArgs) -> Result<()> {
     let cfg = a.serve.config()?;
+    sqlite_only(&cfg, "restore")?;
     // The master key the backup was taken under must be there already: a fresh one would
     // open none of the restored keys.
     let master = if std::env::var_os(crate::store::MASTER_KEY_ENV).is_some()
@@ -277,7 +306,7 @@ fn rotate_master_cmd(new_key_file: Option<&std::path::Path>, serve: &ServeArgs) 
     let new = crate::store::MasterKey::load_or_create_file(&staged)
         .with_context(|| format!("cannot write the new key {}", staged.display()))?;
     runtime()?.block_on(async {
-        let store = Store::open(&cfg.data_dir, old).await?;
+        let store = Store::open_with(&cfg.data_dir, &cfg.database(), old).await?;
         let n = store.rotate_master_key(&new, "cli").await?;
         store.close().await;
         if let Some(f) = &final_path {

@@ -8,7 +8,7 @@ use super::{Store, parse_uuid, time, to_u64};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 use sqlx::Row;
-use sqlx::sqlite::SqliteRow;
+use sqlx::any::AnyRow;
 use std::str::FromStr;
 use uuid::Uuid;
 
@@ -113,7 +113,7 @@ impl Store {
             revoked: false,
         };
         sqlx::query(
-            "INSERT INTO api_keys (id, name, token_sha256, scopes, created_at) VALUES (?, ?, ?, ?, ?)",
+            "INSERT INTO api_keys (id, name, token_sha256, scopes, created_at) VALUES ($1, $2, $3, $4, $5)",
         )
         .bind(key.id.to_string())
         .bind(&key.name)
@@ -142,7 +142,7 @@ impl Store {
         }
         let row = sqlx::query(
             "SELECT id, name, scopes, created_at, revoked_at FROM api_keys \
-             WHERE token_sha256 = ? AND revoked_at IS NULL",
+             WHERE token_sha256 = $1 AND revoked_at IS NULL",
         )
         .bind(token_hash(token))
         .fetch_optional(&self.pool)
@@ -175,13 +175,13 @@ impl Store {
         let id = id.to_string();
         let mut tx = self.begin_immediate().await?;
         let res =
-            sqlx::query("UPDATE api_keys SET revoked_at = ? WHERE id = ? AND revoked_at IS NULL")
+            sqlx::query("UPDATE api_keys SET revoked_at = $1 WHERE id = $2 AND revoked_at IS NULL")
                 .bind(time::now())
                 .bind(&id)
                 .execute(&mut *tx)
                 .await?;
         if res.rows_affected() == 0 {
-            let known: Option<i64> = sqlx::query_scalar("SELECT 1 FROM api_keys WHERE id = ?")
+            let known: Option<i64> = sqlx::query_scalar("SELECT 1 FROM api_keys WHERE id = $1")
                 .bind(&id)
                 .fetch_optional(&mut *tx)
                 .await?;
@@ -210,7 +210,7 @@ fn join_scopes(scopes: &[Scope]) -> String {
         .join(",")
 }
 
-fn decode_key(r: &SqliteRow) -> Result<ApiKey> {
+fn decode_key(r: &AnyRow) -> Result<ApiKey> {
     let scopes: String = r.try_get("scopes")?;
     let scopes = scopes
         .split(',')

@@ -6,8 +6,9 @@ use super::error::{Result, StoreError};
 use super::{Store, parse_opt_uuid, parse_uuid, time, to_i64, to_u64};
 use crate::scene::Format;
 use serde::{Deserialize, Serialize};
+use sqlx::AnyConnection;
 use sqlx::Row;
-use sqlx::sqlite::{SqliteConnection, SqliteRow};
+use sqlx::any::AnyRow;
 use uuid::Uuid;
 
 /// Scene formats an asset may have: the scene reader's names ([`Format::as_str`]), so that what
@@ -175,7 +176,7 @@ impl Store {
                 continue;
             }
             let used: i64 = sqlx::query_scalar(
-                "SELECT COUNT(*) FROM assets WHERE sha256 = ? OR cameras_sha256 = ?",
+                "SELECT COUNT(*) FROM assets WHERE sha256 = $1 OR cameras_sha256 = $2",
             )
             .bind(id)
             .bind(id)
@@ -205,7 +206,7 @@ impl Store {
     pub async fn get_asset(&self, id: Uuid) -> Result<Option<Asset>> {
         let sql = "SELECT id, owner, kind, parent_id, source_job_id, sha256, size, format, \
                    file_name, gaussians, sh_degree, cameras_sha256, cameras_format, created_at \
-                   FROM assets WHERE id = ?";
+                   FROM assets WHERE id = $1";
         let row = sqlx::query(sql)
             .bind(id.to_string())
             .fetch_optional(&self.pool)
@@ -225,8 +226,8 @@ impl Store {
         let limit = i64::from(limit.clamp(1, 1000));
         let sql = "SELECT id, owner, kind, parent_id, source_job_id, sha256, size, format, \
                    file_name, gaussians, sh_degree, cameras_sha256, cameras_format, created_at, \
-                   seq FROM assets WHERE (? IS NULL OR owner = ?) AND seq < ? \
-                   ORDER BY seq DESC LIMIT ?";
+                   seq FROM assets WHERE ($1 IS NULL OR owner = $2) AND seq < $3 \
+                   ORDER BY seq DESC LIMIT $4";
         let rows = sqlx::query(sql)
             .bind(owner)
             .bind(owner)
@@ -250,7 +251,7 @@ impl Store {
     pub async fn watermarked_of(&self, original: Uuid) -> Result<Vec<Asset>> {
         let sql = "SELECT id, owner, kind, parent_id, source_job_id, sha256, size, format, \
                    file_name, gaussians, sh_degree, cameras_sha256, cameras_format, created_at \
-                   FROM assets WHERE parent_id = ? AND kind = 'watermarked' \
+                   FROM assets WHERE parent_id = $1 AND kind = 'watermarked' \
                    ORDER BY created_at, seq";
         let rows = sqlx::query(sql)
             .bind(original.to_string())
@@ -338,7 +339,7 @@ impl Store {
 }
 
 /// Inserts a validated asset on `conn` (inside the caller's transaction).
-pub(crate) async fn insert_in(conn: &mut SqliteConnection, a: &NewAsset) -> Result<Asset> {
+pub(crate) async fn insert_in(conn: &mut AnyConnection, a: &NewAsset) -> Result<Asset> {
     let asset = Asset {
         id: Uuid::new_v4(),
         owner: a.owner.clone(),
@@ -359,7 +360,7 @@ pub(crate) async fn insert_in(conn: &mut SqliteConnection, a: &NewAsset) -> Resu
     sqlx::query(
         "INSERT INTO assets (id, owner, kind, parent_id, source_job_id, sha256, size, format, \
          file_name, gaussians, sh_degree, cameras_sha256, cameras_format, created_at) \
-         VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13, $14)",
     )
     .bind(asset.id.to_string())
     .bind(&asset.owner)
@@ -381,7 +382,7 @@ pub(crate) async fn insert_in(conn: &mut SqliteConnection, a: &NewAsset) -> Resu
     Ok(asset)
 }
 
-pub(crate) fn decode_asset(r: &SqliteRow) -> Result<Asset> {
+pub(crate) fn decode_asset(r: &AnyRow) -> Result<Asset> {
     let id: String = r.try_get("id")?;
     let kind: String = r.try_get("kind")?;
     let sh: i64 = r.try_get("sh_degree")?;

@@ -8,7 +8,8 @@ use super::{Store, to_u64};
 use crate::embed::attribution::AttributionRecord;
 use crate::embed::sbag::Role;
 use serde::Serialize;
-use sqlx::sqlite::{SqliteConnection, SqliteRow};
+use sqlx::AnyConnection;
+use sqlx::any::AnyRow;
 use sqlx::{AssertSqlSafe, Row};
 use std::sync::OnceLock;
 use uuid::Uuid;
@@ -76,7 +77,7 @@ impl Store {
             None => {
                 sqlx::query(
                     "SELECT idx, role, parent, child, flags, data FROM attribution \
-                 WHERE asset_seq = ? AND idx > ? ORDER BY idx LIMIT ?",
+                 WHERE asset_seq = $1 AND idx > $2 ORDER BY idx LIMIT $3",
                 )
                 .bind(seq)
                 .bind(after)
@@ -87,7 +88,7 @@ impl Store {
             Some(role) => {
                 sqlx::query(
                     "SELECT idx, role, parent, child, flags, data FROM attribution \
-                 WHERE asset_seq = ? AND role = ? AND idx > ? ORDER BY idx LIMIT ?",
+                 WHERE asset_seq = $1 AND role = $2 AND idx > $3 ORDER BY idx LIMIT $4",
                 )
                 .bind(seq)
                 .bind(role_code(role))
@@ -113,18 +114,18 @@ impl Store {
         let seq = self.asset_seq(asset).await?;
         let r = sqlx::query(
             "SELECT COUNT(*) AS n, \
-               COALESCE(SUM(role = 0), 0) AS carriers, \
-               COALESCE(SUM(role = 1), 0) AS compensators, \
-               COALESCE(SUM(role = 2), 0) AS untouched, \
+               COUNT(CASE WHEN role = 0 THEN 1 END) AS carriers, \
+               COUNT(CASE WHEN role = 1 THEN 1 END) AS compensators, \
+               COUNT(CASE WHEN role = 2 THEN 1 END) AS untouched, \
                COUNT(DISTINCT parent) AS parents, \
                COUNT(DISTINCT CASE WHEN role = 0 THEN parent END) AS carrier_parents, \
-               COALESCE(SUM(flags & 1), 0) AS feasible, \
+               COUNT(CASE WHEN (flags & 1) = 1 THEN 1 END) AS feasible, \
                SUM(CASE WHEN role = 0 THEN wm_grad_share END) AS share, \
                AVG(CASE WHEN role = 0 THEN utility END) AS cu, \
                AVG(CASE WHEN role <> 0 THEN utility END) AS ou, \
                AVG(CASE WHEN role = 0 THEN visibility END) AS cv, \
                AVG(CASE WHEN role <> 0 THEN visibility END) AS ov \
-             FROM attribution WHERE asset_seq = ?",
+             FROM attribution WHERE asset_seq = $1",
         )
         .bind(seq)
         .fetch_one(&self.pool)
@@ -149,7 +150,7 @@ impl Store {
     /// without a report).
     pub async fn report_of(&self, asset: Uuid) -> Result<Option<serde_json::Value>> {
         let report: Option<Option<String>> =
-            sqlx::query_scalar("SELECT report FROM assets WHERE id = ?")
+            sqlx::query_scalar("SELECT report FROM assets WHERE id = $1")
                 .bind(asset.to_string())
                 .fetch_optional(&self.pool)
                 .await?;
@@ -163,7 +164,7 @@ impl Store {
 
     /// The compact handle of an asset (`NotFound` when unknown).
     pub(crate) async fn asset_seq(&self, asset: Uuid) -> Result<i64> {
-        sqlx::query_scalar("SELECT seq FROM assets WHERE id = ?")
+        sqlx::query_scalar("SELECT seq FROM assets WHERE id = $1")
             .bind(asset.to_string())
             .fetch_optional(&self.pool)
             .await?
@@ -174,7 +175,7 @@ impl Store {
 /// Inserts `records` for the asset with handle `seq` on `conn` (inside the caller's
 /// transaction). Duplicate indices are a `Conflict`.
 pub(crate) async fn insert_in(
-    conn: &mut SqliteConnection,
+    conn: &mut AnyConnection,
     seq: i64,
     records: &[AttributionRecord],
 ) -> Result<()> {
@@ -190,6 +191,12 @@ pub(crate) async fn insert_in(
         for rec in chunk {
             let (flags, data) = encode(rec);
             let finite = |x: f32| (!x.is_nan()).then_some(f64::from(x));
+            let [(u, has_u), (v, has_v), (w, has_w)] = [
+                finite(rec.utility),
+                finite(rec.visibility),
+                rec.wm_grad_share.and_then(finite),
+            ]
+            .map(super::nullable_f64);
             q = q
                 .bind(seq)
                 .bind(i64::from(rec.index))
@@ -197,9 +204,12 @@ pub(crate) async fn insert_in(
                 .bind(i64::from(rec.parent))
                 .bind(i64::from(rec.child))
                 .bind(flags)
-                .bind(finite(rec.utility))
-                .bind(finite(rec.visibility))
-                .bind(rec.wm_grad_share.and_then(finite))
+                .bind(u)
+                .bind(has_u)
+                .bind(v)
+                .bind(has_v)
+                .bind(w)
+                .bind(has_w)
                 .bind(data);
         }
         q.execute(&mut *conn).await.map_err(StoreError::from_db)?;
@@ -207,13 +217,29 @@ pub(crate) async fn insert_in(
     Ok(())
 }
 
+/// Bound values per row: six integers, three nullable doubles as (value, present), the blob.
+const PARAMS_PER_ROW: usize = 13;
+
 fn insert_sql(rows: usize) -> String {
     let mut s = format!("INSERT INTO attribution ({COLUMNS}) VALUES ");
     for i in 0..rows {
+        let p = |k: usize| i * PARAMS_PER_ROW + k;
         if i > 0 {
             s.push(',');
         }
-        s.push_str("(?,?,?,?,?,?,?,?,?,?)");
+        s.push_str(&format!(
+            "(${},${},${},${},${},${},{},{},{},${})",
+            p(1),
+            p(2),
+            p(3),
+            p(4),
+            p(5),
+            p(6),
+            super::nullable_f64_sql(p(7), p(8)),
+            super::nullable_f64_sql(p(9), p(10)),
+            super::nullable_f64_sql(p(11), p(12)),
+            p(13)
+        ));
     }
     s
 }
@@ -263,7 +289,7 @@ fn encode(r: &AttributionRecord) -> (i64, Vec<u8>) {
     (flags, data)
 }
 
-fn decode(row: &SqliteRow) -> Result<AttributionRecord> {
+fn decode(row: &AnyRow) -> Result<AttributionRecord> {
     let data: Vec<u8> = row.try_get("data")?;
     if data.len() != FLOATS * 4 {
         return Err(StoreError::corrupt(format!(

@@ -7,8 +7,9 @@ use super::error::{Result, StoreError};
 use super::{Store, time};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
-use sqlx::sqlite::{SqliteConnection, SqliteRow};
-use sqlx::{QueryBuilder, Row, Sqlite};
+use sqlx::AnyConnection;
+use sqlx::any::AnyRow;
+use sqlx::{AssertSqlSafe, Row};
 use uuid::Uuid;
 
 /// `prev_hash` of the first row.
@@ -115,29 +116,32 @@ impl Store {
         };
         let since = f.since.as_deref().map(normalize_time).transpose()?;
         let until = f.until.as_deref().map(normalize_time).transpose()?;
-        let mut q = QueryBuilder::<Sqlite>::new(
+        // Filters in a fixed order, numbered $2.. (the same text on SQLite and PostgreSQL).
+        let mut sql = String::from(
             "SELECT id, at, actor, action, asset_id, job_id, details, prev_hash, hash \
-             FROM audit WHERE id > ",
+             FROM audit WHERE id > $1",
         );
-        q.push_bind(f.after_id.unwrap_or(0));
-        if let Some(a) = f.asset_id {
-            q.push(" AND asset_id = ").push_bind(a.to_string());
+        let mut texts: Vec<String> = Vec::new();
+        let filters = [
+            ("asset_id =", f.asset_id.map(|a| a.to_string())),
+            ("action =", f.action.clone()),
+            ("actor =", f.actor.clone()),
+            ("at >=", since),
+            ("at <=", until),
+        ];
+        for (cond, value) in filters {
+            if let Some(v) = value {
+                texts.push(v);
+                sql.push_str(&format!(" AND {cond} ${}", texts.len() + 1));
+            }
         }
-        if let Some(a) = &f.action {
-            q.push(" AND action = ").push_bind(a.clone());
+        sql.push_str(&format!(" ORDER BY id LIMIT ${}", texts.len() + 2));
+        let mut q = sqlx::query(AssertSqlSafe(sql)).bind(f.after_id.unwrap_or(0));
+        for t in texts {
+            q = q.bind(t);
         }
-        if let Some(a) = &f.actor {
-            q.push(" AND actor = ").push_bind(a.clone());
-        }
-        if let Some(s) = since {
-            q.push(" AND at >= ").push_bind(s);
-        }
-        if let Some(u) = until {
-            q.push(" AND at <= ").push_bind(u);
-        }
-        q.push(" ORDER BY id LIMIT ")
-            .push_bind(i64::from(limit) + 1);
-        let rows = q.build().fetch_all(&self.pool).await?;
+        let q = q.bind(i64::from(limit) + 1);
+        let rows = q.fetch_all(&self.pool).await?;
         let mut out = rows.iter().map(decode_row).collect::<Result<Vec<_>>>()?;
         let next = if out.len() > limit as usize {
             out.truncate(limit as usize);
@@ -158,7 +162,7 @@ impl Store {
         loop {
             let batch = sqlx::query(
                 "SELECT id, at, actor, action, asset_id, job_id, details, prev_hash, hash \
-                 FROM audit WHERE id > ? ORDER BY id LIMIT ?",
+                 FROM audit WHERE id > $1 ORDER BY id LIMIT $2",
             )
             .bind(after)
             .bind(BATCH)
@@ -200,7 +204,7 @@ impl Store {
 
 /// Appends `e` on `conn`, which must be inside a `BEGIN IMMEDIATE` transaction (so no other
 /// writer can read the same head and fork the chain).
-pub(crate) async fn append_in(conn: &mut SqliteConnection, e: &AuditEntry) -> Result<AuditRow> {
+pub(crate) async fn append_in(conn: &mut AnyConnection, e: &AuditEntry) -> Result<AuditRow> {
     validate_field("actor", &e.actor)?;
     validate_field("action", &e.action)?;
     let details = serde_json::to_string(&e.details)
@@ -233,7 +237,7 @@ pub(crate) async fn append_in(conn: &mut SqliteConnection, e: &AuditEntry) -> Re
     );
     sqlx::query(
         "INSERT INTO audit (id, at, actor, action, asset_id, job_id, details, prev_hash, hash) \
-         VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9)",
     )
     .bind(id)
     .bind(&at)
@@ -316,7 +320,7 @@ pub(crate) fn chain_hash(
     hex::encode(h.finalize())
 }
 
-fn decode_row(r: &SqliteRow) -> Result<AuditRow> {
+fn decode_row(r: &AnyRow) -> Result<AuditRow> {
     let details: String = r.try_get("details")?;
     Ok(AuditRow {
         id: r.try_get("id")?,

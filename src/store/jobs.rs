@@ -8,10 +8,11 @@
 use super::audit::{self, AuditEntry};
 use super::error::{Result, StoreError};
 use super::keys::{WatermarkKey, validate_message};
-use super::{Store, parse_opt_uuid, parse_uuid, time, to_i64, to_u64};
+use super::{Backend, Store, parse_opt_uuid, parse_uuid, time, to_i64, to_u64};
 use serde::{Deserialize, Serialize};
+use sqlx::AnyConnection;
 use sqlx::Row;
-use sqlx::sqlite::{SqliteConnection, SqliteRow};
+use sqlx::any::AnyRow;
 use std::str::FromStr;
 use std::time::Duration;
 use uuid::Uuid;
@@ -215,7 +216,7 @@ impl Store {
         if let Some(key) = &j.idempotency_key {
             let existing = sqlx::query(
                 "SELECT id, asset_id, bits, options, max_attempts, message_nonce, message_ct, \
-                 mask_nonce, mask_ct FROM jobs WHERE owner = ? AND idempotency_key = ?",
+                 mask_nonce, mask_ct FROM jobs WHERE owner = $1 AND idempotency_key = $2",
             )
             .bind(&j.owner)
             .bind(key)
@@ -244,7 +245,7 @@ impl Store {
                 return Ok((job, false));
             }
         }
-        let kind: Option<String> = sqlx::query_scalar("SELECT kind FROM assets WHERE id = ?")
+        let kind: Option<String> = sqlx::query_scalar("SELECT kind FROM assets WHERE id = $1")
             .bind(j.asset_id.to_string())
             .fetch_optional(&mut *tx)
             .await?;
@@ -260,7 +261,7 @@ impl Store {
         sqlx::query(
             "INSERT INTO jobs (id, asset_id, owner, bits, message_nonce, message_ct, mask_nonce, \
              mask_ct, options, idempotency_key, state, max_attempts, not_before, created_at, \
-             updated_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, 'queued', ?, ?, ?, ?)",
+             updated_at) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, 'queued', $11, $12, $13, $14)",
         )
         .bind(&id)
         .bind(j.asset_id.to_string())
@@ -296,8 +297,8 @@ impl Store {
     /// The jobs of `asset`, newest first, at most `limit` (1–1000).
     pub async fn jobs_of(&self, asset: Uuid, limit: u32) -> Result<Vec<Job>> {
         let sql = format!(
-            "SELECT {JOB_COLUMNS} FROM jobs WHERE asset_id = ? \
-             ORDER BY created_at DESC, id DESC LIMIT ?"
+            "SELECT {JOB_COLUMNS} FROM jobs WHERE asset_id = $1 \
+             ORDER BY created_at DESC, id DESC LIMIT $2"
         );
         let rows = sqlx::query(sqlx::AssertSqlSafe(sql))
             .bind(asset.to_string())
@@ -311,7 +312,7 @@ impl Store {
     /// before drawing a fresh random message for it).
     pub async fn job_by_idempotency_key(&self, owner: &str, key: &str) -> Result<Option<Job>> {
         let id: Option<String> =
-            sqlx::query_scalar("SELECT id FROM jobs WHERE owner = ? AND idempotency_key = ?")
+            sqlx::query_scalar("SELECT id FROM jobs WHERE owner = $1 AND idempotency_key = $2")
                 .bind(owner)
                 .bind(key)
                 .fetch_optional(&self.pool)
@@ -334,11 +335,20 @@ impl Store {
         validate_lease(lease)?;
         let mut tx = self.begin_immediate().await?;
         let now = time::now();
-        let row = sqlx::query(
-            "SELECT id, message_nonce, message_ct, mask_nonce, mask_ct FROM jobs \
-             WHERE state IN ('queued', 'failed') AND not_before <= ? \
-             ORDER BY created_at, rowid LIMIT 1",
-        )
+        // Oldest first; jobs created in the same millisecond in insertion order (SQLite's
+        // rowid, PostgreSQL's `seq`).
+        let row = sqlx::query(match self.backend() {
+            Backend::Sqlite => {
+                "SELECT id, message_nonce, message_ct, mask_nonce, mask_ct FROM jobs \
+                 WHERE state IN ('queued', 'failed') AND not_before <= $1 \
+                 ORDER BY created_at, rowid LIMIT 1"
+            }
+            Backend::Postgres => {
+                "SELECT id, message_nonce, message_ct, mask_nonce, mask_ct FROM jobs \
+                 WHERE state IN ('queued', 'failed') AND not_before <= $1 \
+                 ORDER BY created_at, seq LIMIT 1"
+            }
+        })
         .bind(&now)
         .fetch_optional(&mut *tx)
         .await?;
@@ -363,8 +373,8 @@ impl Store {
         };
         let token = Uuid::new_v4();
         sqlx::query(
-            "UPDATE jobs SET state = 'running', attempts = attempts + 1, lease_token = ?, \
-             lease_expires_at = ?, worker = ?, heartbeat_at = ?, updated_at = ? WHERE id = ?",
+            "UPDATE jobs SET state = 'running', attempts = attempts + 1, lease_token = $1, \
+             lease_expires_at = $2, worker = $3, heartbeat_at = $4, updated_at = $5 WHERE id = $6",
         )
         .bind(token.to_string())
         .bind(time::after(lease))
@@ -403,8 +413,8 @@ impl Store {
         let expires = time::after(lease);
         let done = match p {
             None => sqlx::query(
-                "UPDATE jobs SET lease_expires_at = ?, heartbeat_at = ?, updated_at = ? \
-                 WHERE id = ? AND state = 'running' AND lease_token = ?",
+                "UPDATE jobs SET lease_expires_at = $1, heartbeat_at = $2, updated_at = $3 \
+                 WHERE id = $4 AND state = 'running' AND lease_token = $5",
             )
             .bind(&expires)
             .bind(&now)
@@ -418,11 +428,13 @@ impl Store {
                 if p.phase.len() > 64 || p.phase.chars().any(char::is_control) {
                     return Err(StoreError::invalid("phase must be <= 64 bytes"));
                 }
+                // A nullable double, bound as value and presence: `super::nullable_f64`.
                 let eta = p.eta_seconds.filter(|e| e.is_finite() && *e >= 0.0);
                 sqlx::query(
-                    "UPDATE jobs SET lease_expires_at = ?, heartbeat_at = ?, updated_at = ?, \
-                     phase = ?, step = ?, total = ?, eta_seconds = ? \
-                     WHERE id = ? AND state = 'running' AND lease_token = ?",
+                    "UPDATE jobs SET lease_expires_at = $1, heartbeat_at = $2, updated_at = $3, \
+                     phase = $4, step = $5, total = $6, \
+                     eta_seconds = CASE WHEN $10 = 1 THEN $7 END \
+                     WHERE id = $8 AND state = 'running' AND lease_token = $9",
                 )
                 .bind(&expires)
                 .bind(&now)
@@ -430,9 +442,10 @@ impl Store {
                 .bind(&p.phase)
                 .bind(to_i64(p.step)?)
                 .bind(to_i64(p.total)?)
-                .bind(eta)
+                .bind(eta.unwrap_or(0.0))
                 .bind(job.to_string())
                 .bind(token.to_string())
+                .bind(i64::from(eta.is_some()))
                 .execute(&self.pool)
                 .await?
                 .rows_affected()
@@ -452,7 +465,7 @@ impl Store {
         let now = time::now();
         let rows = sqlx::query(
             "SELECT id, asset_id, attempts, max_attempts, worker FROM jobs \
-             WHERE state = 'running' AND lease_expires_at < ? ORDER BY lease_expires_at",
+             WHERE state = 'running' AND lease_expires_at < $1 ORDER BY lease_expires_at",
         )
         .bind(&now)
         .fetch_all(&mut *tx)
@@ -476,7 +489,7 @@ impl Store {
                 let error = format!("lease expired (worker {worker:?}) on attempt {attempts}");
                 sqlx::query(
                     "UPDATE jobs SET state = 'queued', lease_token = NULL, lease_expires_at = NULL, \
-                     not_before = ?, error = ?, updated_at = ? WHERE id = ?",
+                     not_before = $1, error = $2, updated_at = $3 WHERE id = $4",
                 )
                 .bind(&now)
                 .bind(&error)
@@ -503,9 +516,9 @@ impl Store {
         let held = held_job(&mut tx, &id, token).await?;
         let now = time::now();
         sqlx::query(
-            "UPDATE jobs SET state = 'queued', attempts = MAX(attempts - 1, 0), \
-             lease_token = NULL, lease_expires_at = NULL, not_before = ?, updated_at = ? \
-             WHERE id = ?",
+            "UPDATE jobs SET state = 'queued', attempts = CASE WHEN attempts > 0 THEN attempts - 1 ELSE 0 END, \
+             lease_token = NULL, lease_expires_at = NULL, not_before = $1, updated_at = $2 \
+             WHERE id = $3",
         )
         .bind(&now)
         .bind(&now)
@@ -543,7 +556,7 @@ impl Store {
             let retry_at = time::after(backoff(attempts));
             sqlx::query(
                 "UPDATE jobs SET state = 'failed', lease_token = NULL, lease_expires_at = NULL, \
-                 not_before = ?, error = ?, updated_at = ? WHERE id = ?",
+                 not_before = $1, error = $2, updated_at = $3 WHERE id = $4",
             )
             .bind(&retry_at)
             .bind(error)
@@ -588,7 +601,7 @@ impl Store {
         }
         sqlx::query(
             "UPDATE jobs SET state = 'cancelled', lease_token = NULL, lease_expires_at = NULL, \
-             updated_at = ? WHERE id = ?",
+             updated_at = $1 WHERE id = $2",
         )
         .bind(time::now())
         .bind(&id)
@@ -613,10 +626,10 @@ struct HeldJob {
 }
 
 /// The running job `id` if `token` holds its lease, else `LeaseLost`.
-async fn held_job(tx: &mut SqliteConnection, id: &str, token: Uuid) -> Result<HeldJob> {
+async fn held_job(tx: &mut AnyConnection, id: &str, token: Uuid) -> Result<HeldJob> {
     let r = sqlx::query(
         "SELECT asset_id, attempts, max_attempts, worker FROM jobs \
-         WHERE id = ? AND state = 'running' AND lease_token = ?",
+         WHERE id = $1 AND state = 'running' AND lease_token = $2",
     )
     .bind(id)
     .bind(token.to_string())
@@ -643,8 +656,8 @@ pub fn backoff(attempts: i64) -> Duration {
     BACKOFF_BASE.saturating_mul(1 << exp).min(BACKOFF_CAP)
 }
 
-pub(crate) async fn fetch_job(conn: &mut SqliteConnection, id: &str) -> Result<Option<Job>> {
-    let sql = format!("SELECT {JOB_COLUMNS} FROM jobs WHERE id = ?");
+pub(crate) async fn fetch_job(conn: &mut AnyConnection, id: &str) -> Result<Option<Job>> {
+    let sql = format!("SELECT {JOB_COLUMNS} FROM jobs WHERE id = $1");
     let row = sqlx::query(sqlx::AssertSqlSafe(sql))
         .bind(id)
         .fetch_optional(&mut *conn)
@@ -652,10 +665,10 @@ pub(crate) async fn fetch_job(conn: &mut SqliteConnection, id: &str) -> Result<O
     row.as_ref().map(decode_job).transpose()
 }
 
-async fn set_dead(conn: &mut SqliteConnection, id: &str, error: &str, now: &str) -> Result<()> {
+async fn set_dead(conn: &mut AnyConnection, id: &str, error: &str, now: &str) -> Result<()> {
     sqlx::query(
-        "UPDATE jobs SET state = 'dead', lease_token = NULL, lease_expires_at = NULL, error = ?, \
-         updated_at = ? WHERE id = ?",
+        "UPDATE jobs SET state = 'dead', lease_token = NULL, lease_expires_at = NULL, error = $1, \
+         updated_at = $2 WHERE id = $3",
     )
     .bind(error)
     .bind(now)
@@ -665,7 +678,7 @@ async fn set_dead(conn: &mut SqliteConnection, id: &str, error: &str, now: &str)
     Ok(())
 }
 
-fn decode_job(r: &SqliteRow) -> Result<Job> {
+fn decode_job(r: &AnyRow) -> Result<Job> {
     let options: String = r.try_get("options")?;
     let state: String = r.try_get("state")?;
     let u32_of = |col: &str| -> Result<u32> {

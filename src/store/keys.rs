@@ -30,8 +30,9 @@ use super::error::{Result, StoreError};
 use super::{Store, parse_uuid, time};
 use crate::decoder::projection::ViewProjection;
 use crate::verify::message::random_message;
+use sqlx::AnyConnection;
 use sqlx::Row;
-use sqlx::sqlite::{SqliteConnection, SqliteRow};
+use sqlx::any::AnyRow;
 use uuid::Uuid;
 
 /// Most bits a message may have.
@@ -173,7 +174,7 @@ impl Store {
     /// does not open or their lengths differ.
     pub(crate) fn open_key(
         &self,
-        r: &SqliteRow,
+        r: &AnyRow,
         nonce_col: &str,
         ct_col: &str,
         aad: &str,
@@ -203,7 +204,7 @@ impl Store {
 impl Store {
     /// Opens a `keys` row (asset id, key, mask and reference columns); `Crypto` when any part does not
     /// open or does not fit the key.
-    fn open_registration(&self, r: &SqliteRow) -> Result<Registration> {
+    fn open_registration(&self, r: &AnyRow) -> Result<Registration> {
         let id: String = r.try_get("asset_id")?;
         let key = self.open_key(r, "nonce", "ciphertext", &id)?;
         let nonce: Option<Vec<u8>> = r.try_get("reference_nonce")?;
@@ -250,7 +251,7 @@ impl Store {
     pub async fn registration(&self, asset: Uuid) -> Result<Option<Registration>> {
         let row = sqlx::query(
             "SELECT asset_id, nonce, ciphertext, mask_nonce, mask_ct, reference_nonce, \
-             reference_ct, head_nonce, head_ct FROM keys WHERE asset_id = ?",
+             reference_ct, head_nonce, head_ct FROM keys WHERE asset_id = $1",
         )
         .bind(asset.to_string())
         .fetch_optional(&self.pool)
@@ -289,7 +290,7 @@ impl Store {
     /// `conn` (inside the caller's transaction).
     pub(crate) async fn insert_key_in(
         &self,
-        conn: &mut SqliteConnection,
+        conn: &mut AnyConnection,
         asset: Uuid,
         key: &WatermarkKey,
         reference: Option<&[f32]>,
@@ -321,7 +322,7 @@ impl Store {
         sqlx::query(
             "INSERT INTO keys (asset_id, bits, nonce, ciphertext, mask_nonce, mask_ct, \
              reference_nonce, reference_ct, head_nonce, head_ct, created_at) \
-             VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11)",
         )
         .bind(&id)
         .bind(key.bits() as i64)
@@ -406,7 +407,7 @@ impl Store {
                     )?;
                     let s = next.seal(&plain, aad.as_bytes())?;
                     sqlx::query(sqlx::AssertSqlSafe(format!(
-                        "UPDATE {table} SET {nonce_col} = ?, {ct_col} = ? WHERE {id_col} = ?"
+                        "UPDATE {table} SET {nonce_col} = $1, {ct_col} = $2 WHERE {id_col} = $3"
                     )))
                     .bind(s.nonce)
                     .bind(s.ciphertext)
@@ -423,7 +424,7 @@ impl Store {
         )?;
         let mut value = check.nonce;
         value.extend_from_slice(&check.ciphertext);
-        sqlx::query("UPDATE meta SET value = ? WHERE key = 'key_check'")
+        sqlx::query("UPDATE meta SET value = $1 WHERE key = 'key_check'")
             .bind(value)
             .execute(&mut *tx)
             .await?;

@@ -24,6 +24,7 @@ mod audit;
 pub mod backup;
 mod blobs;
 pub(crate) mod crypto;
+pub mod database;
 mod error;
 pub(crate) mod jobs;
 mod keys;
@@ -51,11 +52,13 @@ pub use lock::{DataDirLock, LOCK_FILE, LockError, LockMode};
 pub use time::normalize_timestamp;
 pub use verifications::NewVerification;
 
+pub use database::{Backend, Database};
+
 use serde::Serialize;
-use sqlx::sqlite::{
-    SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteSynchronous,
-};
-use sqlx::{Row, Sqlite, Transaction};
+use sqlx::AnyPool;
+use sqlx::any::AnyPoolOptions;
+use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqliteSynchronous};
+use sqlx::{Any, Connection, Executor, Row, Transaction};
 use std::path::Path;
 use std::sync::Arc;
 use std::time::Duration;
@@ -69,13 +72,14 @@ pub const BLOB_DIR: &str = "blobs";
 /// The storage handle: a connection pool and the blob store. Cheap to clone.
 #[derive(Clone)]
 pub struct Store {
-    pool: SqlitePool,
+    pool: AnyPool,
     inner: Arc<Inner>,
 }
 
 struct Inner {
     blobs: BlobStore,
     cipher: crypto::Cipher,
+    backend: Backend,
 }
 
 /// Row counts for `/metrics`.
@@ -96,6 +100,7 @@ pub struct Counts {
 impl std::fmt::Debug for Store {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Store")
+            .field("backend", &self.inner.backend)
             .field("blobs", &self.inner.blobs)
             .finish_non_exhaustive()
     }
@@ -106,30 +111,82 @@ impl Store {
     /// checks `master` against the key-check value written when the database was created
     /// (`Crypto` for a different key, so a misconfigured service fails at start, not at verify).
     pub async fn open(data_dir: &Path, master: MasterKey) -> Result<Store> {
+        Self::open_with(data_dir, &Database::in_data_dir(data_dir), master).await
+    }
+
+    /// Opens `database` (SQLite or PostgreSQL, [`Database`]) with the blobs in
+    /// `data_dir/blobs/`, applies that dialect's migrations (`migrations/sqlite`,
+    /// `migrations/postgres`) and checks `master` as [`Store::open`] does.
+    pub async fn open_with(
+        data_dir: &Path,
+        database: &Database,
+        master: MasterKey,
+    ) -> Result<Store> {
         std::fs::create_dir_all(data_dir)?;
         let blobs = BlobStore::open(data_dir.join(BLOB_DIR))?;
-        make_private(&data_dir.join(DB_FILE))?;
-        let options = SqliteConnectOptions::new()
-            .filename(data_dir.join(DB_FILE))
-            .create_if_missing(true)
-            .journal_mode(SqliteJournalMode::Wal)
-            .synchronous(SqliteSynchronous::Full)
-            .busy_timeout(Duration::from_secs(5))
-            .foreign_keys(true);
-        let pool = SqlitePoolOptions::new()
-            .max_connections(8)
-            .connect_with(options)
-            .await?;
-        sqlx::migrate!("./migrations").run(&pool).await?;
+        sqlx::any::install_default_drivers();
+        let pool = match database {
+            Database::Sqlite(path) => {
+                if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+                    std::fs::create_dir_all(dir)?;
+                }
+                make_private(path)?;
+                // WAL is a property of the file: set once, on a connection of its own (the
+                // pool's URL cannot carry it); every pooled connection then sets the rest.
+                let first = sqlx::SqliteConnection::connect_with(
+                    &SqliteConnectOptions::new()
+                        .filename(path)
+                        .create_if_missing(true)
+                        .journal_mode(SqliteJournalMode::Wal)
+                        .synchronous(SqliteSynchronous::Full)
+                        .busy_timeout(Duration::from_secs(5))
+                        .foreign_keys(true),
+                )
+                .await?;
+                first.close().await?;
+                let pool = AnyPoolOptions::new()
+                    .max_connections(8)
+                    .after_connect(|conn, _| {
+                        Box::pin(async move {
+                            conn.execute(
+                                "PRAGMA synchronous = FULL; PRAGMA foreign_keys = ON; \
+                                 PRAGMA busy_timeout = 5000;",
+                            )
+                            .await?;
+                            Ok(())
+                        })
+                    })
+                    .connect(&database.url())
+                    .await?;
+                sqlx::migrate!("./migrations/sqlite").run(&pool).await?;
+                pool
+            }
+            Database::Postgres(_) => {
+                let pool = AnyPoolOptions::new()
+                    .max_connections(8)
+                    .acquire_timeout(Duration::from_secs(30))
+                    .connect(&database.url())
+                    .await?;
+                // sqlx takes PostgreSQL's migration advisory lock: replicas may start together.
+                sqlx::migrate!("./migrations/postgres").run(&pool).await?;
+                pool
+            }
+        };
         let store = Store {
             pool,
             inner: Arc::new(Inner {
                 blobs,
                 cipher: crypto::Cipher::new(&master),
+                backend: database.backend(),
             }),
         };
         store.check_master_key().await?;
         Ok(store)
+    }
+
+    /// Which database engine holds the rows.
+    pub fn backend(&self) -> Backend {
+        self.inner.backend
     }
 
     /// The blob store.
@@ -137,12 +194,21 @@ impl Store {
         &self.inner.blobs
     }
 
-    /// SQLite's `PRAGMA integrity_check`: "ok", or the problems it found, one per line.
+    /// SQLite's `PRAGMA integrity_check`: "ok", or the problems it found, one per line. On
+    /// PostgreSQL, whose pages the server checks itself, "ok" once a query runs.
     pub async fn integrity_check(&self) -> Result<String> {
-        let rows: Vec<String> = sqlx::query_scalar("PRAGMA integrity_check")
-            .fetch_all(&self.pool)
-            .await?;
-        Ok(rows.join("\n"))
+        match self.backend() {
+            Backend::Sqlite => {
+                let rows: Vec<String> = sqlx::query_scalar("PRAGMA integrity_check")
+                    .fetch_all(&self.pool)
+                    .await?;
+                Ok(rows.join("\n"))
+            }
+            Backend::Postgres => {
+                self.ping().await?;
+                Ok("ok".into())
+            }
+        }
     }
 
     /// A trivial query (for `/readyz`).
@@ -183,9 +249,20 @@ impl Store {
         Ok(c)
     }
 
-    /// A write transaction that takes SQLite's write lock at once (`BEGIN IMMEDIATE`).
-    pub(crate) async fn begin_immediate(&self) -> Result<Transaction<'static, Sqlite>> {
-        Ok(self.pool.begin_with("BEGIN IMMEDIATE").await?)
+    /// A write transaction that no other write transaction interleaves with: SQLite's write
+    /// lock taken at once (`BEGIN IMMEDIATE`); on PostgreSQL, the write lock
+    /// ([`database::WRITE_LOCK`], a transaction-scoped advisory lock) taken before anything is
+    /// read — every writer of several processes then reads the audit chain's head and the
+    /// rows it checks as the previous writer left them.
+    pub(crate) async fn begin_immediate(&self) -> Result<Transaction<'static, Any>> {
+        match self.backend() {
+            Backend::Sqlite => Ok(self.pool.begin_with("BEGIN IMMEDIATE").await?),
+            Backend::Postgres => {
+                let mut tx = self.pool.begin().await?;
+                database::write_lock(&mut tx).await?;
+                Ok(tx)
+            }
+        }
     }
 
     pub(crate) fn cipher(&self) -> &crypto::Cipher {
@@ -217,7 +294,7 @@ impl Store {
                     .seal(crypto::KEY_CHECK_PLAINTEXT, crypto::KEY_CHECK_AAD)?;
                 let mut value = sealed.nonce;
                 value.extend_from_slice(&sealed.ciphertext);
-                sqlx::query("INSERT INTO meta (key, value) VALUES ('key_check', ?)")
+                sqlx::query("INSERT INTO meta (key, value) VALUES ('key_check', $1)")
                     .bind(value)
                     .execute(&mut *tx)
                     .await?;
@@ -279,6 +356,20 @@ pub(crate) fn to_u64(v: i64) -> Result<u64> {
 /// A `u64` as a SQLite integer (`Invalid` past `i64::MAX`).
 pub(crate) fn to_i64(v: u64) -> Result<i64> {
     i64::try_from(v).map_err(|_| StoreError::invalid(format!("{v} is too large")))
+}
+
+/// A nullable double as two bound values, (value, 1) or (0, 0), which the SQL reads back as
+/// [`nullable_f64_sql`]. sqlx 0.9.0's `Any` driver sends a NULL `f64` to PostgreSQL as a NULL
+/// *float4* (`AnyArguments::convert_into` swaps `Null(Real)` and `Null(Double)`), and a
+/// statement prepared with that parameter type then refuses the next row's float8 value
+/// ("incorrect binary data format"): binding the value always keeps the parameter float8.
+pub(crate) fn nullable_f64(v: Option<f64>) -> (f64, i64) {
+    v.map_or((0.0, 0), |x| (x, 1))
+}
+
+/// `CASE WHEN $present = 1 THEN $value END`: the SQL side of [`nullable_f64`].
+pub(crate) fn nullable_f64_sql(value: usize, present: usize) -> String {
+    format!("CASE WHEN ${present} = 1 THEN ${value} END")
 }
 
 /// A stored UUID.

@@ -62,7 +62,7 @@ impl Store {
         let id = job.to_string();
         let row = sqlx::query(
             "SELECT asset_id, bits, message_nonce, message_ct, mask_nonce, mask_ct FROM jobs \
-             WHERE id = ? AND state = 'running' AND lease_token = ?",
+             WHERE id = $1 AND state = 'running' AND lease_token = $2",
         )
         .bind(&id)
         .bind(token.to_string())
@@ -93,11 +93,11 @@ impl Store {
         self.validate_asset(&asset)?;
 
         let stored = assets::insert_in(&mut tx, &asset).await?;
-        let seq: i64 = sqlx::query_scalar("SELECT seq FROM assets WHERE id = ?")
+        let seq: i64 = sqlx::query_scalar("SELECT seq FROM assets WHERE id = $1")
             .bind(stored.id.to_string())
             .fetch_one(&mut *tx)
             .await?;
-        sqlx::query("UPDATE assets SET report = ? WHERE seq = ?")
+        sqlx::query("UPDATE assets SET report = $1 WHERE seq = $2")
             .bind(&report)
             .bind(seq)
             .execute(&mut *tx)
@@ -107,8 +107,8 @@ impl Store {
         attribution::insert_in(&mut tx, seq, attribution).await?;
         let now = time::now();
         sqlx::query(
-            "UPDATE jobs SET state = 'done', result_asset_id = ?, lease_token = NULL, \
-             lease_expires_at = NULL, error = NULL, updated_at = ? WHERE id = ?",
+            "UPDATE jobs SET state = 'done', result_asset_id = $1, lease_token = NULL, \
+             lease_expires_at = NULL, error = NULL, updated_at = $2 WHERE id = $3",
         )
         .bind(stored.id.to_string())
         .bind(&now)

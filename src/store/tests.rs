@@ -3,28 +3,69 @@
 use super::*;
 use crate::embed::attribution::AttributionRecord;
 use crate::embed::sbag::Role;
+use sqlx::AnyConnection;
 use sqlx::Connection;
-use sqlx::sqlite::{SqliteConnectOptions, SqliteConnection};
 use std::collections::HashSet;
 use std::time::Duration;
 use tempfile::TempDir;
 
 const LONG: Duration = Duration::from_secs(60);
 
+/// Where the store tests keep their rows: an SQLite file in the test's folder, or — when
+/// `SPLATMARK_TEST_POSTGRES` names a PostgreSQL server (`postgres://USER@HOST:PORT`, as
+/// `scripts/test.sh` starts one) — a new database on that server for each test. The choice is
+/// written into the folder, so that a test reopening the store, or tampering with its rows,
+/// finds the same database.
+const TEST_DB_FILE: &str = "test-database.url";
+
+async fn test_database(dir: &std::path::Path) -> Database {
+    let url_file = dir.join(TEST_DB_FILE);
+    if let Ok(url) = std::fs::read_to_string(&url_file) {
+        return Database::parse(&url).expect("stored test database URL");
+    }
+    let db = match std::env::var("SPLATMARK_TEST_POSTGRES") {
+        Ok(server) if !server.is_empty() => {
+            sqlx::any::install_default_drivers();
+            let name = format!("sm_{}", uuid::Uuid::new_v4().simple());
+            let mut admin =
+                AnyConnection::connect(&format!("{}/postgres", server.trim_end_matches('/')))
+                    .await
+                    .expect("connect to the test PostgreSQL server");
+            sqlx::query(sqlx::AssertSqlSafe(format!("CREATE DATABASE {name}")))
+                .execute(&mut admin)
+                .await
+                .expect("create a test database");
+            admin.close().await.expect("close");
+            Database::Postgres(format!("{}/{name}", server.trim_end_matches('/')))
+        }
+        _ => Database::in_data_dir(dir),
+    };
+    std::fs::write(&url_file, db.url()).expect("write the test database URL");
+    db
+}
+
+/// Opens (or reopens) the test store of `dir`.
+async fn open_in(dir: &std::path::Path, key: MasterKey) -> Result<Store> {
+    let db = test_database(dir).await;
+    Store::open_with(dir, &db, key).await
+}
+
+fn on_postgres() -> bool {
+    std::env::var("SPLATMARK_TEST_POSTGRES").is_ok_and(|s| !s.is_empty())
+}
+
 async fn setup() -> (TempDir, Store) {
     let dir = tempfile::tempdir().expect("tempdir");
-    let store = Store::open(dir.path(), MasterKey::generate())
+    let store = open_in(dir.path(), MasterKey::generate())
         .await
         .expect("open");
     (dir, store)
 }
 
 /// A raw connection that bypasses the store (for tampering).
-async fn raw(dir: &TempDir) -> SqliteConnection {
-    let opts = SqliteConnectOptions::new().filename(dir.path().join(DB_FILE));
-    SqliteConnection::connect_with(&opts)
-        .await
-        .expect("raw connection")
+async fn raw(dir: &TempDir) -> AnyConnection {
+    let url = test_database(dir.path()).await.url();
+    AnyConnection::connect(&url).await.expect("raw connection")
 }
 
 async fn scalar(dir: &TempDir, sql: &'static str) -> i64 {
@@ -33,6 +74,23 @@ async fn scalar(dir: &TempDir, sql: &'static str) -> i64 {
         .fetch_one(&mut c)
         .await
         .expect("scalar")
+}
+
+/// Flips the bits of byte 5 of `column` of the one row of `keys`, bypassing the store.
+async fn tamper_byte(conn: &mut AnyConnection, column: &str) {
+    let mut v: Vec<u8> =
+        sqlx::query_scalar(sqlx::AssertSqlSafe(format!("SELECT {column} FROM keys")))
+            .fetch_one(&mut *conn)
+            .await
+            .expect("read");
+    v[5] ^= 0xff;
+    sqlx::query(sqlx::AssertSqlSafe(format!(
+        "UPDATE keys SET {column} = $1"
+    )))
+    .bind(v)
+    .execute(&mut *conn)
+    .await
+    .expect("tamper");
 }
 
 fn entry(action: &str) -> AuditEntry {
@@ -210,14 +268,67 @@ async fn publish(
         .await
 }
 
-fn all_files_bytes(dir: &TempDir) -> Vec<u8> {
+/// Every byte the store keeps for the test in `dir`: the files of the folder (the SQLite file,
+/// its WAL — freed pages and all) and, on PostgreSQL, every value of every row as stored (raw
+/// bytes of BYTEA, text as UTF-8, numbers as their decimal text).
+async fn stored_bytes(dir: &TempDir) -> Vec<u8> {
     let mut out = Vec::new();
     for e in std::fs::read_dir(dir.path()).expect("read_dir").flatten() {
-        if e.path().is_file() {
+        if e.path().is_file() && e.file_name() != TEST_DB_FILE {
             out.extend(std::fs::read(e.path()).expect("read"));
         }
     }
+    if on_postgres() {
+        use sqlx::{Column, Row, ValueRef};
+        let mut conn = raw(dir).await;
+        let tables = [
+            "meta",
+            "assets",
+            "keys",
+            "jobs",
+            "attribution",
+            "audit",
+            "verifications",
+            "api_keys",
+        ];
+        for t in tables {
+            let rows = sqlx::query(sqlx::AssertSqlSafe(format!("SELECT * FROM {t}")))
+                .fetch_all(&mut conn)
+                .await
+                .expect("rows");
+            for r in &rows {
+                for c in r.columns() {
+                    let i = c.ordinal();
+                    if r.try_get_raw(i).expect("value").is_null() {
+                        continue;
+                    }
+                    if let Ok(b) = r.try_get::<Vec<u8>, _>(i) {
+                        out.extend(b);
+                    } else if let Ok(s) = r.try_get::<String, _>(i) {
+                        out.extend(s.into_bytes());
+                    } else if let Ok(n) = r.try_get::<i64, _>(i) {
+                        out.extend(n.to_string().into_bytes());
+                    } else if let Ok(x) = r.try_get::<f64, _>(i) {
+                        out.extend(x.to_string().into_bytes());
+                    }
+                }
+            }
+        }
+    }
     out
+}
+
+/// Drops an audit-log trigger behind the store's back (SQLite and PostgreSQL spell it apart).
+async fn drop_trigger(conn: &mut AnyConnection, name: &str) {
+    let sql = if on_postgres() {
+        format!("DROP TRIGGER {name} ON audit")
+    } else {
+        format!("DROP TRIGGER {name}")
+    };
+    sqlx::query(sqlx::AssertSqlSafe(sql))
+        .execute(&mut *conn)
+        .await
+        .expect("drop");
 }
 
 fn contains(hay: &[u8], needle: &[u8]) -> bool {
@@ -414,7 +525,7 @@ async fn bad_blob_ids_are_rejected() {
 async fn stale_temp_files_are_removed_at_open_and_fresh_ones_kept() {
     let dir = tempfile::tempdir().expect("tempdir");
     let key = MasterKey::generate();
-    let store = Store::open(dir.path(), key.clone()).await.expect("open");
+    let store = open_in(dir.path(), key.clone()).await.expect("open");
     let old = store
         .blobs()
         .temp_file()
@@ -437,7 +548,7 @@ async fn stale_temp_files_are_removed_at_open_and_fresh_ones_kept() {
         .set_modified(two_days)
         .expect("set mtime");
     store.close().await;
-    Store::open(dir.path(), key).await.expect("reopen");
+    open_in(dir.path(), key).await.expect("reopen");
     assert!(!old.exists(), "stale temp file removed");
     assert!(young.exists(), "fresh temp file kept");
 }
@@ -480,16 +591,12 @@ async fn master_key_roundtrip_and_wrong_key_fails() {
 
     // A store refuses to open under another master key.
     let dir = tempfile::tempdir().expect("tempdir");
-    drop(
-        Store::open(dir.path(), k.clone())
-            .await
-            .expect("first open"),
-    );
+    drop(open_in(dir.path(), k.clone()).await.expect("first open"));
     assert!(matches!(
-        Store::open(dir.path(), MasterKey::generate()).await,
+        open_in(dir.path(), MasterKey::generate()).await,
         Err(StoreError::Crypto)
     ));
-    Store::open(dir.path(), k)
+    open_in(dir.path(), k)
         .await
         .expect("reopen with the right key");
 }
@@ -528,8 +635,8 @@ async fn messages_are_never_stored_in_plaintext() {
     assert_eq!(store.key_of(wm.id).await.expect("key"), Some(c.key.clone()));
 
     // Neither the message, nor the mask, nor the payload is in any file in any encoding.
-    let bytes = all_files_bytes(&dir);
-    assert!(bytes.len() > 4096, "database files found");
+    let bytes = stored_bytes(&dir).await;
+    assert!(bytes.len() > 1024, "the stored bytes were read");
     for secret in [&msg, &c.key.mask, &c.key.payload()] {
         let ascii = crypto::bits_to_ascii(secret);
         let packed: Vec<u8> = secret
@@ -566,12 +673,7 @@ async fn tampered_key_ciphertext_is_a_crypto_error() {
         .expect("a job");
     let wm = publish(&store, &c, &records(10)).await.expect("publish");
     let mut conn = raw(&dir).await;
-    sqlx::query(
-        "UPDATE keys SET ciphertext = substr(ciphertext, 1, 5) || x'00' || substr(ciphertext, 7)",
-    )
-    .execute(&mut conn)
-    .await
-    .expect("tamper");
+    tamper_byte(&mut conn, "ciphertext").await;
     assert!(matches!(store.key_of(wm.id).await, Err(StoreError::Crypto)));
     assert!(matches!(store.all_keys().await, Err(StoreError::Crypto)));
 }
@@ -626,13 +728,7 @@ async fn an_asset_reference_is_registered_sealed_and_checked() {
     assert_eq!(all[0].reference, Some(reference));
     // Sealed: a changed byte, or half of it missing, does not open.
     let mut conn = raw(&dir).await;
-    sqlx::query(
-        "UPDATE keys SET reference_ct = substr(reference_ct, 1, 5) || x'00' || \
-         substr(reference_ct, 7)",
-    )
-    .execute(&mut conn)
-    .await
-    .expect("tamper");
+    tamper_byte(&mut conn, "reference_ct").await;
     assert!(matches!(
         store.registration(wm.id).await,
         Err(StoreError::Crypto)
@@ -720,10 +816,7 @@ async fn a_matched_head_is_registered_sealed_and_checked() {
     assert_eq!((reg.reference, reg.head.as_ref()), (None, Some(&head)));
     // Sealed: a changed byte does not open.
     let mut conn = raw(&dir).await;
-    sqlx::query("UPDATE keys SET head_ct = substr(head_ct, 1, 5) || x'00' || substr(head_ct, 7)")
-        .execute(&mut conn)
-        .await
-        .expect("tamper");
+    tamper_byte(&mut conn, "head_ct").await;
     assert!(matches!(
         store.registration(wm.id).await,
         Err(StoreError::Crypto)
@@ -745,7 +838,7 @@ async fn a_matched_head_is_registered_sealed_and_checked() {
 async fn rotating_the_master_key_reseals_everything_and_the_old_key_opens_nothing() {
     let dir = tempfile::tempdir().expect("tempdir");
     let old = MasterKey::generate();
-    let store = Store::open(dir.path(), old.clone()).await.expect("open");
+    let store = open_in(dir.path(), old.clone()).await.expect("open");
     // A registered key with its mask and reference, and a job still queued.
     let a = original(&store).await;
     enqueue(&store, a.id, 3).await;
@@ -767,7 +860,7 @@ async fn rotating_the_master_key_reseals_everything_and_the_old_key_opens_nothin
         .await
         .expect("publish");
     let queued = enqueue(&store, a.id, 3).await;
-    let before_bytes = all_files_bytes(&dir);
+    let before_bytes = stored_bytes(&dir).await;
     let new = MasterKey::generate();
     // keys: message, mask, reference, head; jobs: two × (message, mask).
     assert_eq!(
@@ -776,10 +869,10 @@ async fn rotating_the_master_key_reseals_everything_and_the_old_key_opens_nothin
     );
     store.close().await;
     assert!(matches!(
-        Store::open(dir.path(), old).await,
+        open_in(dir.path(), old).await,
         Err(StoreError::Crypto)
     ));
-    let store = Store::open(dir.path(), new)
+    let store = open_in(dir.path(), new)
         .await
         .expect("the new key opens it");
     let reg = store
@@ -798,7 +891,7 @@ async fn rotating_the_master_key_reseals_everything_and_the_old_key_opens_nothin
     assert_eq!(next.job.id, queued.id);
     assert_eq!(next.key.bits(), c.key.bits());
     // Every ciphertext changed (fresh nonces), and the rotation is in the audit chain.
-    assert_ne!(all_files_bytes(&dir), before_bytes);
+    assert_ne!(stored_bytes(&dir).await, before_bytes);
     assert_eq!(
         scalar(
             &dir,
@@ -863,8 +956,8 @@ async fn every_job_gets_a_secret_random_mask_and_its_result_keeps_it() {
     // Half a mask (nonce without ciphertext) or a mask sealed for another row does not open.
     let other_job = keys[1].job.id.to_string();
     sqlx::query(
-        "UPDATE keys SET mask_nonce = (SELECT mask_nonce FROM jobs WHERE id = ?), \
-         mask_ct = (SELECT mask_ct FROM jobs WHERE id = ?)",
+        "UPDATE keys SET mask_nonce = (SELECT mask_nonce FROM jobs WHERE id = $1), \
+         mask_ct = (SELECT mask_ct FROM jobs WHERE id = $2)",
     )
     .bind(&other_job)
     .bind(&other_job)
@@ -1682,10 +1775,7 @@ async fn audit_chain_verifies_and_tampering_is_found() {
         assert!(e.to_string().contains("append-only"), "{e}");
     }
     // Behind the triggers' back: detected, first bad row named.
-    sqlx::query("DROP TRIGGER audit_no_update")
-        .execute(&mut conn)
-        .await
-        .expect("drop");
+    drop_trigger(&mut conn, "audit_no_update").await;
     sqlx::query("UPDATE audit SET details = '{\"i\":99}' WHERE id = 3")
         .execute(&mut conn)
         .await
@@ -1703,10 +1793,7 @@ async fn audit_chain_detects_a_deleted_row() {
         store.append_audit(entry("verify")).await.expect("append");
     }
     let mut conn = raw(&dir).await;
-    sqlx::query("DROP TRIGGER audit_no_delete")
-        .execute(&mut conn)
-        .await
-        .expect("drop");
+    drop_trigger(&mut conn, "audit_no_delete").await;
     sqlx::query("DELETE FROM audit WHERE id = 2")
         .execute(&mut conn)
         .await
@@ -1737,6 +1824,66 @@ async fn concurrent_appends_never_fork_the_chain() {
     let rep = store.verify_audit_chain().await.expect("verify");
     assert!(rep.ok);
     assert_eq!(rep.rows, 60);
+}
+
+/// Writers with pools of their own — as separate processes have, on one SQLite file or one
+/// PostgreSQL database — appending to the audit log and claiming jobs at once: the chain
+/// stays one line (ids 1..=n, each row linked to the previous) and every job is claimed once.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn writers_with_their_own_pools_keep_one_chain_and_claim_each_job_once() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let key = MasterKey::generate();
+    let first = open_in(dir.path(), key.clone()).await.expect("open");
+    let a = original(&first).await;
+    let jobs = 12;
+    for _ in 0..jobs {
+        enqueue(&first, a.id, 3).await;
+    }
+    let mut handles = vec![first];
+    for _ in 0..3 {
+        handles.push(open_in(dir.path(), key.clone()).await.expect("open"));
+    }
+    let tasks: Vec<_> = handles
+        .iter()
+        .enumerate()
+        .map(|(t, store)| {
+            let store = store.clone();
+            tokio::spawn(async move {
+                let mut claimed = Vec::new();
+                for i in 0..10 {
+                    store
+                        .append_audit(AuditEntry::new(format!("w{t}"), "verify"))
+                        .await
+                        .expect("append");
+                    if i % 2 == 0
+                        && let Some(c) = store.claim(&format!("w{t}"), LONG).await.expect("claim")
+                    {
+                        claimed.push(c.job.id);
+                    }
+                }
+                claimed
+            })
+        })
+        .collect();
+    let mut claimed = Vec::new();
+    for t in tasks {
+        claimed.extend(t.await.expect("task"));
+    }
+    let distinct: HashSet<_> = claimed.iter().collect();
+    assert_eq!(claimed.len(), jobs, "every job claimed, and only once");
+    assert_eq!(distinct.len(), jobs);
+    let rep = handles[2].verify_audit_chain().await.expect("verify");
+    assert!(rep.ok, "{rep:?}");
+    // Upload, 12 enqueues, 40 appends and 12 claims.
+    assert_eq!(rep.rows, 1 + 12 + 40 + 12);
+    assert_eq!(
+        scalar(
+            &dir,
+            "SELECT COUNT(*) FROM audit WHERE action = 'job.claim'"
+        )
+        .await,
+        12
+    );
 }
 
 // ---- verifications -------------------------------------------------------------------------
@@ -1827,7 +1974,7 @@ async fn api_keys_authenticate_revoke_and_store_only_the_hash() {
             "{bad:?}"
         );
     }
-    let bytes = all_files_bytes(&dir);
+    let bytes = stored_bytes(&dir).await;
     assert!(
         !contains(&bytes, token.as_bytes()),
         "token stored in plaintext"
@@ -1903,7 +2050,11 @@ async fn api_keys_authenticate_revoke_and_store_only_the_hash() {
 
 #[tokio::test]
 async fn database_uses_wal_and_foreign_keys() {
-    let (_dir, store) = setup().await;
+    // SQLite's settings, whatever the suite's database.
+    let dir = tempfile::tempdir().expect("tempdir");
+    let store = Store::open(dir.path(), MasterKey::generate())
+        .await
+        .expect("open");
     let mode: String = sqlx::query_scalar("PRAGMA journal_mode")
         .fetch_one(&store.pool)
         .await

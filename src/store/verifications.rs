@@ -53,7 +53,7 @@ impl Store {
         let row = audit::append_in(&mut tx, &audit_entry).await?;
         sqlx::query(
             "INSERT INTO verifications (id, actor, asset_id, images, image_sha256, result, \
-             audit_id, created_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+             audit_id, created_at) VALUES ($1, $2, $3, $4, $5, $6, $7, $8)",
         )
         .bind(id.to_string())
         .bind(&v.actor)

@@ -17,7 +17,7 @@ use splatmark::queue::JobSpec;
 use splatmark::scene::orbit::orbit_cameras;
 use splatmark::scene::synthetic::object_scene;
 use splatmark::scene::{Gaussians, write_ply};
-use splatmark::store::MasterKey;
+use splatmark::store::{Database, MasterKey};
 
 /// A running server with its own data folder and an HTTP client.
 pub struct TestApp {
@@ -27,6 +27,8 @@ pub struct TestApp {
     pub dir: tempfile::TempDir,
     /// The bootstrap admin token (read from DATA_DIR/admin.token, as an operator would).
     pub admin: String,
+    /// The database the server opened.
+    pub database: Database,
 }
 
 pub struct Keys {
@@ -35,10 +37,44 @@ pub struct Keys {
     pub auditor: String,
 }
 
+/// A new, empty database on the PostgreSQL server that `SPLATMARK_TEST_POSTGRES` names
+/// (`postgres://USER@HOST:PORT`; `scripts/test.sh` starts one and runs the service suites a
+/// second time against it), or `None` — SQLite in the data folder — when it names none.
+pub fn test_database() -> Option<Database> {
+    let server = std::env::var("SPLATMARK_TEST_POSTGRES")
+        .ok()
+        .filter(|s| !s.is_empty())?;
+    let server = server.trim_end_matches('/').to_string();
+    let name = format!("sm_{}", uuid::Uuid::new_v4().simple());
+    let (admin, create) = (format!("{server}/postgres"), name.clone());
+    // A thread of its own: the caller may be inside a runtime already.
+    std::thread::spawn(move || {
+        use sqlx::Connection;
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap();
+        rt.block_on(async {
+            sqlx::any::install_default_drivers();
+            let mut c = sqlx::AnyConnection::connect(&admin)
+                .await
+                .expect("connect to the test PostgreSQL server");
+            sqlx::query(sqlx::AssertSqlSafe(format!("CREATE DATABASE {create}")))
+                .execute(&mut c)
+                .await
+                .expect("create a test database");
+        })
+    })
+    .join()
+    .unwrap();
+    Some(Database::Postgres(format!("{server}/{name}")))
+}
+
 pub fn config(dir: &Path) -> Config {
     Config {
         bind: "127.0.0.1:0".parse().unwrap(),
         data_dir: dir.join("data"),
+        database_url: test_database(),
         workers: Some(1),
         device: splatmark::config::DevicePolicy::Cpu,
         ..Config::default()
@@ -77,7 +113,59 @@ impl TestApp {
             client: reqwest::Client::new(),
             dir,
             admin,
+            database: cfg.database(),
         }
+    }
+
+    /// A connection to the server's database behind its back (for tampering).
+    pub async fn raw_db(&self) -> sqlx::AnyConnection {
+        use sqlx::Connection;
+        sqlx::any::install_default_drivers();
+        let url = match &self.database {
+            Database::Sqlite(path) => format!("sqlite://{}", path.display()),
+            Database::Postgres(url) => url.clone(),
+        };
+        sqlx::AnyConnection::connect(&url).await.unwrap()
+    }
+
+    /// Makes the database refuse every INSERT into `table` with "refused by the test" (as a
+    /// full disk or a broken database would), behind the server's back.
+    pub async fn refuse_inserts(&self, table: &str) {
+        let mut db = self.raw_db().await;
+        let statements = match &self.database {
+            Database::Sqlite(_) => vec![format!(
+                "CREATE TRIGGER refuse_{table} BEFORE INSERT ON {table} \
+                 BEGIN SELECT RAISE(ABORT, 'refused by the test'); END"
+            )],
+            Database::Postgres(_) => vec![
+                "CREATE OR REPLACE FUNCTION refuse_insert() RETURNS trigger LANGUAGE plpgsql \
+                 AS $$ BEGIN RAISE EXCEPTION 'refused by the test'; END $$"
+                    .to_string(),
+                format!(
+                    "CREATE TRIGGER refuse_{table} BEFORE INSERT ON {table} \
+                     FOR EACH ROW EXECUTE FUNCTION refuse_insert()"
+                ),
+            ],
+        };
+        for sql in statements {
+            sqlx::query(sqlx::AssertSqlSafe(sql))
+                .execute(&mut db)
+                .await
+                .unwrap();
+        }
+    }
+
+    /// Undoes [`TestApp::refuse_inserts`].
+    pub async fn allow_inserts(&self, table: &str) {
+        let mut db = self.raw_db().await;
+        let sql = match &self.database {
+            Database::Sqlite(_) => format!("DROP TRIGGER refuse_{table}"),
+            Database::Postgres(_) => format!("DROP TRIGGER refuse_{table} ON {table}"),
+        };
+        sqlx::query(sqlx::AssertSqlSafe(sql))
+            .execute(&mut db)
+            .await
+            .unwrap();
     }
 
     pub fn url(&self, path: &str) -> String {
