@@ -2,11 +2,12 @@
 //! `BEGIN IMMEDIATE` transaction, prepared 512-row INSERTs), then reading pages and the summary.
 //!
 //! Run: `cargo bench --bench store` (add `-- N` for another record count). Prints one line per
-//! measurement.
+//! measurement. SQLite in a temporary folder, or the database `SPLATMARK_BENCH_DATABASE_URL`
+//! names (an empty PostgreSQL database, for example).
 
 use splatmark::embed::attribution::AttributionRecord;
 use splatmark::embed::sbag::Role;
-use splatmark::store::{AssetKind, AuditEntry, MasterKey, NewAsset, NewJob, Store};
+use splatmark::store::{AssetKind, AuditEntry, Database, MasterKey, NewAsset, NewJob, Store};
 use std::time::{Duration, Instant};
 
 fn records(n: u32) -> Vec<AttributionRecord> {
@@ -44,7 +45,12 @@ fn ms(d: Duration) -> f64 {
 
 async fn run(n: u32) -> Result<(), Box<dyn std::error::Error>> {
     let dir = tempfile::tempdir()?;
-    let store = Store::open(dir.path(), MasterKey::generate()).await?;
+    let database = match std::env::var("SPLATMARK_BENCH_DATABASE_URL") {
+        Ok(url) if !url.is_empty() => Database::parse(&url)?,
+        _ => Database::in_data_dir(dir.path()),
+    };
+    println!("database: {database}");
+    let store = Store::open_with(dir.path(), &database, MasterKey::generate()).await?;
     let blob = store.blobs().put_bytes(b"original")?;
     let original = store
         .insert_asset(
@@ -150,7 +156,10 @@ async fn run(n: u32) -> Result<(), Box<dyn std::error::Error>> {
         ms(t.elapsed())
     );
     store.close().await;
-    let db = std::fs::metadata(dir.path().join("splatmark.db"))?.len();
+    let Database::Sqlite(file) = &database else {
+        return Ok(());
+    };
+    let db = std::fs::metadata(file)?.len();
     println!(
         "database file after close: {:.1} MiB ({:.0} bytes per record)",
         db as f64 / (1 << 20) as f64,

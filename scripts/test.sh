@@ -21,7 +21,8 @@ if pg=$(bash scripts/pg-test-server.sh start); then
   trap 'bash scripts/pg-test-server.sh stop "$pg_dir"' EXIT
   echo "PostgreSQL pass: ${pg#* }" >&2
   SPLATMARK_TEST_POSTGRES=${pg#* } cargo test --locked --lib store::
-  SPLATMARK_TEST_POSTGRES=${pg#* } cargo test --locked --test service --test jobs --test hostile_input
+  SPLATMARK_TEST_POSTGRES=${pg#* } cargo test --locked --test service --test jobs --test hostile_input \
+    --test scale_out
 else
   echo "SKIPPED: the PostgreSQL pass (no PostgreSQL server could start; see above)" >&2
 fi

@@ -50,12 +50,17 @@ impl App {
                     cfg.data_dir.display()
                 )
             })?;
-        let admin_token_file = bootstrap_admin(&store, &cfg).await?;
+        let admin_token_file = if cfg.role.serves_api() {
+            bootstrap_admin(&store, &cfg).await?
+        } else {
+            None
+        };
         let listener = tokio::net::TcpListener::bind(cfg.bind)
             .await
             .with_context(|| format!("cannot listen on {}", cfg.bind))?;
         let addr = listener.local_addr()?;
         let workers = match workers {
+            _ if !cfg.role.runs_workers() => Vec::new(),
             Some(w) => w,
             None => plan_workers(&cfg).await,
         };
@@ -88,7 +93,12 @@ impl App {
             upload_memory,
             limits: Arc::new(crate::http::limit::Limits::new(cfg_limits.0, cfg_limits.1)),
         };
-        let app = router(state);
+        let role = state.cfg.role;
+        let app = if role.serves_api() {
+            router(state)
+        } else {
+            crate::http::ops_router(state)
+        };
         let rx_gc = rx.clone();
         let rx_server = rx;
         let header_timeout = cfg_header_timeout;
@@ -98,8 +108,10 @@ impl App {
             header_timeout,
             rx_server,
         ));
-        tokio::spawn(collect_garbage_periodically(store.clone(), rx_gc));
-        tracing::info!(%addr, "splatmark listening");
+        if role.serves_api() {
+            tokio::spawn(collect_garbage_periodically(store.clone(), rx_gc));
+        }
+        tracing::info!(%addr, ?role, "splatmark listening");
         Ok(App {
             addr,
             store,

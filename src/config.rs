@@ -21,6 +21,45 @@ pub enum DevicePolicy {
     Wgpu,
 }
 
+/// What one `serve` process runs: several API replicas and workers on other machines share one
+/// PostgreSQL database (`database_url`) and blob store.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Role {
+    /// The HTTP API and the workers (one machine).
+    #[default]
+    All,
+    /// The HTTP API only: jobs are left to worker processes.
+    Api,
+    /// Workers only, with `/healthz`, `/readyz` and `/metrics` for probes and scrapers.
+    Worker,
+}
+
+impl std::str::FromStr for Role {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "all" => Ok(Role::All),
+            "api" => Ok(Role::Api),
+            "worker" => Ok(Role::Worker),
+            _ => Err(format!("unknown role {s:?}: expected all, api or worker")),
+        }
+    }
+}
+
+impl Role {
+    /// Whether this process serves the API (and so bootstraps the admin key and collects
+    /// unreferenced blobs).
+    pub fn serves_api(self) -> bool {
+        self != Role::Worker
+    }
+
+    /// Whether this process runs workers.
+    pub fn runs_workers(self) -> bool {
+        self != Role::Api
+    }
+}
+
 /// Views the embedding trains on when an upload comes without cameras (orbit around the scene)
 /// and the resolution renders are made at. 512² by default: at 256² donut's unseen views decode
 /// 97.9 % of the bits, at 512² 99.2 % (docs/RESULTS.md), for about 2.6× the CPU time.
@@ -70,6 +109,8 @@ pub struct Config {
     /// The database (`sqlite://PATH` or `postgres://USER:PASSWORD@HOST:PORT/DB`); `None`:
     /// `DATA_DIR/splatmark.db`. Blobs stay in `DATA_DIR/blobs/`. Never printed with its password.
     pub database_url: Option<crate::store::Database>,
+    /// What this process runs: `all` (default), `api` or `worker`.
+    pub role: Role,
     /// Number of workers; `None`: one per GPU adapter, or one CPU worker.
     pub workers: Option<usize>,
     pub device: DevicePolicy,
@@ -159,6 +200,7 @@ impl Default for Config {
             bind: SocketAddr::from(([127, 0, 0, 1], 8080)),
             data_dir: PathBuf::from("data"),
             database_url: None,
+            role: Role::All,
             workers: None,
             device: DevicePolicy::Auto,
             max_upload_bytes: 1 << 30,
@@ -269,6 +311,7 @@ impl Config {
             })?;
             self.database_url = Some(db);
         }
+        env!("SPLATMARK_ROLE", self.role);
         env!("SPLATMARK_WORKERS", some self.workers);
         if let Some(v) = get("SPLATMARK_DEVICE") {
             self.device = match v.trim() {

@@ -376,7 +376,7 @@ async fn health_metrics_and_the_served_spec_match_the_committed_one() {
     );
     assert!(m.contains("splatmark_workers 1"), "{m}");
     assert!(
-        m.contains("splatmark_worker_device{worker=\"cpu-0\",device=\"cpu\"} 1"),
+        m.contains("splatmark_worker_device{worker=\"cpu-0@") && m.contains("\",device=\"cpu\"} 1"),
         "{m}"
     );
     let served: Value = t

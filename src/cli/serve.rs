@@ -21,6 +21,10 @@ pub(crate) struct ServeArgs {
     /// Folder for the database, blobs and master key (default ./data).
     #[arg(long)]
     data_dir: Option<PathBuf>,
+    /// What this process runs: all (API and workers, default), api, or worker (workers with
+    /// /healthz, /readyz and /metrics).
+    #[arg(long)]
+    role: Option<crate::config::Role>,
     /// Number of workers (default: one per GPU adapter, or one CPU worker).
     #[arg(long)]
     workers: Option<usize>,
@@ -45,6 +49,9 @@ impl ServeArgs {
         }
         if let Some(d) = &self.data_dir {
             c.data_dir = d.clone();
+        }
+        if let Some(r) = self.role {
+            c.role = r;
         }
         if let Some(w) = self.workers {
             c.workers = Some(w);

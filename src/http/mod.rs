@@ -208,6 +208,21 @@ pub const CONSOLE_ROUTES: &[(&str, &str)] = &[
 ];
 
 /// The router with its middleware.
+/// The router of a worker process (`serve --role worker`): probes and metrics, no API.
+pub fn ops_router(state: AppState) -> Router {
+    let metrics = state.metrics.clone();
+    Router::new()
+        .route("/healthz", get(health::healthz))
+        .route("/readyz", get(health::readyz))
+        .route("/metrics", get(health::metrics))
+        .fallback(|| async { error::ApiError::not_found("route") })
+        .with_state(state)
+        .layer(middleware::from_fn_with_state(metrics, count))
+        .layer(middleware::from_fn(error::as_problem))
+        .layer(middleware::from_fn(security_headers))
+        .layer(TraceLayer::new_for_http())
+}
+
 pub fn router(state: AppState) -> Router {
     let metrics = state.metrics.clone();
     Router::new()

@@ -54,10 +54,29 @@ pub async fn plan_workers(cfg: &Config) -> Vec<WorkerSpec> {
                 Device::flex()
             });
             WorkerSpec {
-                name: format!("{kind}-{i}"),
+                name: format!("{kind}-{i}@{}", process_name()),
                 device,
                 rasterizer,
             }
         })
         .collect()
+}
+
+/// `HOST:PID`, which tells the workers of several processes and machines apart in job records,
+/// the audit log and `/metrics` (the host name is a Kubernetes pod's name).
+fn process_name() -> String {
+    let host = std::env::var("HOSTNAME")
+        .ok()
+        .filter(|h| !h.is_empty())
+        .or_else(|| std::fs::read_to_string("/proc/sys/kernel/hostname").ok())
+        .map(|h| {
+            h.trim()
+                .chars()
+                .filter(|c| !c.is_control())
+                .take(64)
+                .collect::<String>()
+        })
+        .filter(|h| !h.is_empty())
+        .unwrap_or_else(|| "localhost".into());
+    format!("{host}:{}", std::process::id())
 }

@@ -1,0 +1,329 @@
+//! Many processes on one PostgreSQL database (issue 17): two API replicas (`serve --role api`)
+//! and three worker processes (`serve --role worker`), the real binary, sharing the database and
+//! the blob folder. Thirty jobs go in through both replicas; two workers are killed (SIGKILL)
+//! mid-job and replaced. Every job must finish exactly once: one watermarked asset, one key and
+//! one full set of attribution rows per job, and the audit chain verifies.
+//!
+//! Runs in the PostgreSQL pass of `scripts/test.sh` (`SPLATMARK_TEST_POSTGRES`); without a
+//! server it prints SKIPPED.
+
+mod common;
+
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use common::{ply_bytes, small_job, test_database};
+use reqwest::StatusCode;
+use serde_json::{Value, json};
+use splatmark::scene::synthetic::object_scene;
+use splatmark::store::{Database, MasterKey};
+use sqlx::Connection;
+
+struct Process {
+    child: Child,
+    base: String,
+}
+
+impl Drop for Process {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// Starts `serve --role ROLE` on `db` and the shared data folder; returns once `/healthz`
+/// answers.
+async fn serve(role: &str, data: &Path, db: &Database, master: &str, log: &Path) -> Process {
+    let port = free_port();
+    let log = std::fs::File::create(log).unwrap();
+    let child = Command::new(env!("CARGO_BIN_EXE_splatmark"))
+        .args(["serve", "--role", role, "--workers", "1", "--device", "cpu"])
+        .arg("--data-dir")
+        .arg(data)
+        .arg("--bind")
+        .arg(format!("127.0.0.1:{port}"))
+        .env("SPLATMARK_DATABASE_URL", db_url(db))
+        .env("SPLATMARK_MASTER_KEY", master)
+        // Leases of killed workers expire fast.
+        .env("SPLATMARK_LEASE_SECONDS", "3")
+        .stdout(Stdio::null())
+        .stderr(log)
+        .spawn()
+        .unwrap();
+    let p = Process {
+        child,
+        base: format!("http://127.0.0.1:{port}"),
+    };
+    let client = reqwest::Client::new();
+    let start = Instant::now();
+    loop {
+        if let Ok(r) = client.get(format!("{}/healthz", p.base)).send().await
+            && r.status() == StatusCode::OK
+        {
+            return p;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(60),
+            "serve --role {role} did not start"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn api_replicas_and_killed_workers_finish_every_job_exactly_once() {
+    let Some(db) = test_database() else {
+        eprintln!(
+            "SKIPPED: no PostgreSQL server (SPLATMARK_TEST_POSTGRES); scripts/test.sh starts one"
+        );
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let master = MasterKey::generate().to_hex();
+    let logs = dir.path();
+    // The first replica bootstraps the admin key; the second starts once it exists.
+    let api1 = serve("api", &data, &db, &master, &logs.join("api1.log")).await;
+    let api2 = serve("api", &data, &db, &master, &logs.join("api2.log")).await;
+    let mut workers = Vec::new();
+    for i in 0..3 {
+        workers.push(
+            serve(
+                "worker",
+                &data,
+                &db,
+                &master,
+                &logs.join(format!("w{i}.log")),
+            )
+            .await,
+        );
+    }
+    // A worker process serves probes and metrics, not the API.
+    let client = reqwest::Client::new();
+    let r = client
+        .get(format!("{}/v1/assets", workers[0].base))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::NOT_FOUND);
+
+    let admin = std::fs::read_to_string(data.join("admin.token"))
+        .unwrap()
+        .trim()
+        .to_string();
+    let key = |scopes: &'static [&'static str]| {
+        let (client, base, admin) = (client.clone(), api1.base.clone(), admin.clone());
+        async move {
+            let r = client
+                .post(format!("{base}/v1/keys"))
+                .bearer_auth(&admin)
+                .json(&json!({"name": scopes.join("+"), "scopes": scopes}))
+                .send()
+                .await
+                .unwrap();
+            assert_eq!(r.status(), StatusCode::CREATED);
+            r.json::<Value>().await.unwrap()["token"]
+                .as_str()
+                .unwrap()
+                .to_string()
+        }
+    };
+    let (owner, auditor) = (key(&["owner"]).await, key(&["auditor"]).await);
+
+    // One scene, uploaded through the second replica; thirty jobs through both.
+    let form = reqwest::multipart::Form::new().part(
+        "scene",
+        reqwest::multipart::Part::bytes(ply_bytes(&object_scene(300, 0, 5))).file_name("s.ply"),
+    );
+    let r = client
+        .post(format!("{}/v1/assets", api2.base))
+        .bearer_auth(&owner)
+        .multipart(form)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::CREATED);
+    let asset = r.json::<Value>().await.unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let jobs = 30;
+    let mut ids = Vec::new();
+    for i in 0..jobs {
+        let api = if i % 2 == 0 { &api1 } else { &api2 };
+        let mut body = small_job(&format!("{:08x}", 0x5ca1_0000u32 + i), 12);
+        body["options"]["embed"]["finetune"]["extra_steps"] = json!(0);
+        body["options"]["orbit"] = json!({"count": 4, "width": 64, "height": 64});
+        let r = client
+            .post(format!("{}/v1/assets/{asset}/watermark", api.base))
+            .bearer_auth(&owner)
+            .json(&body)
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(
+            r.status(),
+            StatusCode::ACCEPTED,
+            "{}",
+            r.text().await.unwrap()
+        );
+        ids.push(
+            r.json::<Value>().await.unwrap()["id"]
+                .as_str()
+                .unwrap()
+                .to_string(),
+        );
+    }
+    let job = |id: String, base: String| {
+        let (client, owner) = (client.clone(), owner.clone());
+        async move {
+            client
+                .get(format!("{base}/v1/jobs/{id}"))
+                .bearer_auth(&owner)
+                .send()
+                .await
+                .unwrap()
+                .json::<Value>()
+                .await
+                .unwrap()
+        }
+    };
+
+    sqlx::any::install_default_drivers();
+    let mut conn = sqlx::AnyConnection::connect(&db_url(&db)).await.unwrap();
+    // Kill a worker while it runs a job, twice; a new worker process takes each one's place.
+    let start = Instant::now();
+    let mut killed = 0;
+    while killed < 2 {
+        assert!(start.elapsed() < Duration::from_secs(300), "no job ran");
+        // Which worker runs a job is not part of the API: read it from the database.
+        let running: Vec<String> = sqlx::query_scalar(
+            "SELECT worker FROM jobs WHERE state = 'running' AND step > 0 AND worker IS NOT NULL",
+        )
+        .fetch_all(&mut conn)
+        .await
+        .unwrap();
+        let victim = workers.iter().position(|w| {
+            running
+                .iter()
+                .any(|r| r.ends_with(&format!(":{}", w.child.id())))
+        });
+        match victim {
+            Some(v) => {
+                let dead = workers.remove(v);
+                drop(dead); // SIGKILL: no release, no cleanup
+                killed += 1;
+                let log = logs.join(format!("w-new{killed}.log"));
+                workers.push(serve("worker", &data, &db, &master, &log).await);
+            }
+            None => tokio::time::sleep(Duration::from_millis(200)).await,
+        }
+    }
+
+    // Every job finishes.
+    let mut results = std::collections::HashSet::new();
+    for (k, id) in ids.iter().enumerate() {
+        let base = if k % 2 == 0 { &api2 } else { &api1 };
+        loop {
+            let j = job(id.clone(), base.base.clone()).await;
+            if j["state"] == "done" {
+                results.insert(j["result_asset_id"].as_str().unwrap().to_string());
+                break;
+            }
+            assert!(
+                !matches!(j["state"].as_str(), Some("dead" | "cancelled")),
+                "{j}"
+            );
+            assert!(
+                start.elapsed() < Duration::from_secs(900),
+                "job {id} not done: {j}"
+            );
+            tokio::time::sleep(Duration::from_millis(500)).await;
+        }
+    }
+    assert_eq!(results.len(), jobs as usize, "one result per job");
+
+    // Exactly once, in the database: one watermarked asset and one key per job, each asset's
+    // attribution rows all there.
+    assert_eq!(
+        count(
+            &mut conn,
+            "SELECT COUNT(*) FROM assets WHERE kind = 'watermarked'"
+        )
+        .await,
+        i64::from(jobs)
+    );
+    assert_eq!(
+        count(
+            &mut conn,
+            "SELECT COUNT(DISTINCT source_job_id) FROM assets WHERE kind = 'watermarked'"
+        )
+        .await,
+        i64::from(jobs)
+    );
+    assert_eq!(
+        count(&mut conn, "SELECT COUNT(*) FROM keys").await,
+        i64::from(jobs)
+    );
+    assert_eq!(
+        count(
+            &mut conn,
+            "SELECT COUNT(*) FROM assets s WHERE kind = 'watermarked' AND gaussians <> \
+             (SELECT COUNT(*) FROM attribution a WHERE a.asset_seq = s.seq)"
+        )
+        .await,
+        0,
+        "an asset whose attribution rows are missing or repeated"
+    );
+    assert_eq!(
+        count(
+            &mut conn,
+            "SELECT COUNT(*) FROM audit WHERE action = 'watermark.publish'"
+        )
+        .await,
+        i64::from(jobs)
+    );
+    // The killed workers' jobs were claimed again.
+    assert!(
+        count(
+            &mut conn,
+            "SELECT COUNT(*) FROM audit WHERE action = 'job.claim'"
+        )
+        .await
+            >= i64::from(jobs) + 2
+    );
+    let chain: Value = client
+        .get(format!("{}/v1/audit/verify", api2.base))
+        .bearer_auth(&auditor)
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(chain["ok"], true, "{chain}");
+}
+
+async fn count(conn: &mut sqlx::AnyConnection, sql: &'static str) -> i64 {
+    sqlx::query_scalar::<_, i64>(sql)
+        .fetch_one(conn)
+        .await
+        .unwrap()
+}
+
+/// The URL itself (`Display` hides a password).
+fn db_url(db: &Database) -> String {
+    match db {
+        Database::Postgres(url) => url.clone(),
+        Database::Sqlite(p) => format!("sqlite://{}", p.display()),
+    }
+}
