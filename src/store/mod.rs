@@ -359,17 +359,13 @@ pub(crate) fn to_i64(v: u64) -> Result<i64> {
 }
 
 /// A nullable double as two bound values, (value, 1) or (0, 0), which the SQL reads back as
-/// [`nullable_f64_sql`]. sqlx 0.9.0's `Any` driver sends a NULL `f64` to PostgreSQL as a NULL
-/// *float4* (`AnyArguments::convert_into` swaps `Null(Real)` and `Null(Double)`), and a
-/// statement prepared with that parameter type then refuses the next row's float8 value
-/// ("incorrect binary data format"): binding the value always keeps the parameter float8.
+/// `CASE WHEN present = 1 THEN value END`. sqlx 0.9.0's `Any` driver sends a NULL `f64` to
+/// PostgreSQL as a NULL *float4* (`AnyArguments::convert_into` swaps `Null(Real)` and
+/// `Null(Double)`), and a statement prepared with that parameter type then refuses the next
+/// row's float8 value ("incorrect binary data format"): binding the value always keeps the
+/// parameter float8.
 pub(crate) fn nullable_f64(v: Option<f64>) -> (f64, i64) {
     v.map_or((0.0, 0), |x| (x, 1))
-}
-
-/// `CASE WHEN $present = 1 THEN $value END`: the SQL side of [`nullable_f64`].
-pub(crate) fn nullable_f64_sql(value: usize, present: usize) -> String {
-    format!("CASE WHEN ${present} = 1 THEN ${value} END")
 }
 
 /// A stored UUID.

@@ -104,7 +104,7 @@ impl Store {
             .await?;
         self.insert_key_in(&mut tx, stored.id, key, reference, head)
             .await?;
-        attribution::insert_in(&mut tx, seq, attribution).await?;
+        attribution::insert_in(&mut tx, self.backend(), seq, attribution).await?;
         let now = time::now();
         sqlx::query(
             "UPDATE jobs SET state = 'done', result_asset_id = $1, lease_token = NULL, \
