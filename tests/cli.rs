@@ -360,3 +360,28 @@ fn progress_json_reports_each_phase_step_rate_and_eta() {
         String::from_utf8_lossy(&quiet.stderr)
     );
 }
+
+#[test]
+fn commands_that_need_one_machine_refuse_a_postgresql_database_without_its_password() {
+    let dir = tempfile::tempdir().unwrap();
+    let url = "postgres://app:hunter2-secret@127.0.0.1:1/splatmark";
+    for args in [
+        vec!["keys", "rotate-master", "--new-key-file", "new.key"],
+        vec!["backup", "--out", "b"],
+    ] {
+        let out = bin()
+            .args(&args)
+            .arg("--data-dir")
+            .arg(dir.path())
+            .current_dir(dir.path())
+            .env("SPLATMARK_MASTER_KEY", "ab".repeat(32))
+            .env("SPLATMARK_DATABASE_URL", url)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{args:?}");
+        assert!(err.contains("PostgreSQL"), "{args:?}: {err}");
+        assert!(!err.contains("hunter2"), "{args:?}: {err}");
+        assert!(!dir.path().join("new.key").exists());
+    }
+}

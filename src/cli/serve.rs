@@ -194,7 +194,7 @@ fn sqlite_only(cfg: &Config, command: &str) -> Result<()> {
             crate::store::DB_FILE
         ),
         crate::store::Database::Postgres(_) => anyhow::bail!(
-            "`{command}` copies an SQLite database; the configured database is {db}: back it up \
+            "`{command}` copies an SQLite database; the configured database is PostgreSQL ({db}): back it up \
              with pg_dump / pg_basebackup (and the blob folder {} alongside)",
             cfg.data_dir.join(crate::store::BLOB_DIR).display()
         ),
@@ -275,6 +275,14 @@ pub(crate) fn restore_cmd(a: &RestoreArgs) -> Result<()> {
 
 fn rotate_master_cmd(new_key_file: Option<&std::path::Path>, serve: &ServeArgs) -> Result<()> {
     let cfg = serve.config()?;
+    // The folder's lock below is what keeps every server away from a rotation; processes on
+    // other machines sharing a PostgreSQL database do not take it.
+    if let db @ crate::store::Database::Postgres(_) = cfg.database() {
+        anyhow::bail!(
+            "rotating the master key of a PostgreSQL database ({db}) is not supported yet: no \
+             lock keeps the processes of other machines from sealing under the old key meanwhile"
+        );
+    }
     anyhow::ensure!(
         cfg.data_dir.join(crate::store::DB_FILE).is_file(),
         "no database in {}",
