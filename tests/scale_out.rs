@@ -51,7 +51,7 @@ async fn serve(role: &str, data: &Path, db: &Database, master: &str, log: &Path)
         .arg(data)
         .arg("--bind")
         .arg(format!("127.0.0.1:{port}"))
-        .env("SPLATMARK_DATABASE_URL", db_url(db))
+        .env("SPLATMARK_DATABASE_URL", db.url())
         .env("SPLATMARK_MASTER_KEY", master)
         // Leases of killed workers expire fast.
         .env("SPLATMARK_LEASE_SECONDS", "3")
@@ -199,7 +199,7 @@ async fn api_replicas_and_killed_workers_finish_every_job_exactly_once() {
     };
 
     sqlx::any::install_default_drivers();
-    let mut conn = sqlx::AnyConnection::connect(&db_url(&db)).await.unwrap();
+    let mut conn = sqlx::AnyConnection::connect(&db.url()).await.unwrap();
     // Kill a worker while it runs a job, twice; a new worker process takes each one's place.
     let start = Instant::now();
     let mut killed = 0;
@@ -318,12 +318,4 @@ async fn count(conn: &mut sqlx::AnyConnection, sql: &'static str) -> i64 {
         .fetch_one(conn)
         .await
         .unwrap()
-}
-
-/// The URL itself (`Display` hides a password).
-fn db_url(db: &Database) -> String {
-    match db {
-        Database::Postgres(url) => url.clone(),
-        Database::Sqlite(p) => format!("sqlite://{}", p.display()),
-    }
 }

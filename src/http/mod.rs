@@ -207,25 +207,38 @@ pub const CONSOLE_ROUTES: &[(&str, &str)] = &[
     ("get", "/console/app.css"),
 ];
 
-/// The router with its middleware.
-/// The router of a worker process (`serve --role worker`): probes and metrics, no API.
-pub fn ops_router(state: AppState) -> Router {
-    let metrics = state.metrics.clone();
+/// The probes every process serves: liveness, readiness, metrics.
+fn probes() -> Router<AppState> {
     Router::new()
         .route("/healthz", get(health::healthz))
         .route("/readyz", get(health::readyz))
         .route("/metrics", get(health::metrics))
+}
+
+/// `routes` with the fallback, the state and the middleware every router has.
+fn with_middleware(routes: Router<AppState>, state: AppState) -> Router {
+    let metrics = state.metrics.clone();
+    routes
         .fallback(|| async { error::ApiError::not_found("route") })
         .with_state(state)
         .layer(middleware::from_fn_with_state(metrics, count))
+        .layer(TimeoutLayer::with_status_code(
+            axum::http::StatusCode::REQUEST_TIMEOUT,
+            Duration::from_secs(600),
+        ))
         .layer(middleware::from_fn(error::as_problem))
         .layer(middleware::from_fn(security_headers))
         .layer(TraceLayer::new_for_http())
 }
 
+/// The router of a worker process (`serve --role worker`): probes and metrics, no API.
+pub fn ops_router(state: AppState) -> Router {
+    with_middleware(probes(), state)
+}
+
+/// The API router with its middleware.
 pub fn router(state: AppState) -> Router {
-    let metrics = state.metrics.clone();
-    Router::new()
+    let routes = Router::new()
         .route(
             "/v1/assets",
             // Uploads are counted against `max_upload_bytes` while they stream.
@@ -256,21 +269,10 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/audit/verify", get(audit::verify_chain))
         .route("/v1/keys", post(keys::create))
         .route("/v1/keys/{id}", axum::routing::delete(keys::revoke))
-        .route("/healthz", get(health::healthz))
-        .route("/readyz", get(health::readyz))
-        .route("/metrics", get(health::metrics))
         .route("/openapi.json", get(openapi::json))
         .route("/", get(console::index))
         .route("/console/app.js", get(console::script))
         .route("/console/app.css", get(console::style))
-        .fallback(|| async { error::ApiError::not_found("route") })
-        .with_state(state)
-        .layer(middleware::from_fn_with_state(metrics, count))
-        .layer(TimeoutLayer::with_status_code(
-            axum::http::StatusCode::REQUEST_TIMEOUT,
-            Duration::from_secs(600),
-        ))
-        .layer(middleware::from_fn(error::as_problem))
-        .layer(middleware::from_fn(security_headers))
-        .layer(TraceLayer::new_for_http())
+        .merge(probes());
+    with_middleware(routes, state)
 }

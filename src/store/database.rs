@@ -65,8 +65,9 @@ impl Database {
         }
     }
 
-    /// The URL sqlx connects with (may hold a password: never log it).
-    pub(crate) fn url(&self) -> String {
+    /// The URL itself, as sqlx connects with it (may hold a password: never log it; `Display`
+    /// hides it).
+    pub fn url(&self) -> String {
         match self {
             Database::Sqlite(path) => format!("sqlite://{}", percent_encode_path(path)),
             Database::Postgres(url) => url.clone(),
@@ -153,6 +154,23 @@ fn percent_encode_path(path: &Path) -> String {
         }
     }
     out
+}
+
+/// Creates the new, empty database `name` (letters, digits, `_`) on the PostgreSQL server
+/// `server` (a URL without a database path) and returns it — the tests' fresh databases.
+pub async fn create_postgres(server: &str, name: &str) -> Result<Database> {
+    use sqlx::Connection;
+    if name.is_empty() || !name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_') {
+        return Err(StoreError::invalid(format!("database name {name:?}")));
+    }
+    let server = server.trim_end_matches('/');
+    sqlx::any::install_default_drivers();
+    let mut admin = sqlx::AnyConnection::connect(&format!("{server}/postgres")).await?;
+    sqlx::query(sqlx::AssertSqlSafe(format!("CREATE DATABASE {name}")))
+        .execute(&mut admin)
+        .await?;
+    admin.close().await?;
+    Ok(Database::Postgres(format!("{server}/{name}")))
 }
 
 /// The key of the PostgreSQL advisory lock every write transaction takes first

@@ -25,18 +25,10 @@ async fn test_database(dir: &std::path::Path) -> Database {
     }
     let db = match std::env::var("SPLATMARK_TEST_POSTGRES") {
         Ok(server) if !server.is_empty() => {
-            sqlx::any::install_default_drivers();
             let name = format!("sm_{}", uuid::Uuid::new_v4().simple());
-            let mut admin =
-                AnyConnection::connect(&format!("{}/postgres", server.trim_end_matches('/')))
-                    .await
-                    .expect("connect to the test PostgreSQL server");
-            sqlx::query(sqlx::AssertSqlSafe(format!("CREATE DATABASE {name}")))
-                .execute(&mut admin)
+            database::create_postgres(&server, &name)
                 .await
-                .expect("create a test database");
-            admin.close().await.expect("close");
-            Database::Postgres(format!("{}/{name}", server.trim_end_matches('/')))
+                .expect("a new database on the test PostgreSQL server")
         }
         _ => Database::in_data_dir(dir),
     };

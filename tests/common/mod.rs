@@ -44,30 +44,19 @@ pub fn test_database() -> Option<Database> {
     let server = std::env::var("SPLATMARK_TEST_POSTGRES")
         .ok()
         .filter(|s| !s.is_empty())?;
-    let server = server.trim_end_matches('/').to_string();
     let name = format!("sm_{}", uuid::Uuid::new_v4().simple());
-    let (admin, create) = (format!("{server}/postgres"), name.clone());
     // A thread of its own: the caller may be inside a runtime already.
     std::thread::spawn(move || {
-        use sqlx::Connection;
-        let rt = tokio::runtime::Builder::new_current_thread()
+        tokio::runtime::Builder::new_current_thread()
             .enable_all()
             .build()
-            .unwrap();
-        rt.block_on(async {
-            sqlx::any::install_default_drivers();
-            let mut c = sqlx::AnyConnection::connect(&admin)
-                .await
-                .expect("connect to the test PostgreSQL server");
-            sqlx::query(sqlx::AssertSqlSafe(format!("CREATE DATABASE {create}")))
-                .execute(&mut c)
-                .await
-                .expect("create a test database");
-        })
+            .unwrap()
+            .block_on(splatmark::store::database::create_postgres(&server, &name))
+            .expect("a new database on the test PostgreSQL server")
     })
     .join()
-    .unwrap();
-    Some(Database::Postgres(format!("{server}/{name}")))
+    .map(Some)
+    .unwrap()
 }
 
 pub fn config(dir: &Path) -> Config {
@@ -121,11 +110,9 @@ impl TestApp {
     pub async fn raw_db(&self) -> sqlx::AnyConnection {
         use sqlx::Connection;
         sqlx::any::install_default_drivers();
-        let url = match &self.database {
-            Database::Sqlite(path) => format!("sqlite://{}", path.display()),
-            Database::Postgres(url) => url.clone(),
-        };
-        sqlx::AnyConnection::connect(&url).await.unwrap()
+        sqlx::AnyConnection::connect(&self.database.url())
+            .await
+            .unwrap()
     }
 
     /// Makes the database refuse every INSERT into `table` with "refused by the test" (as a
