@@ -1,9 +1,11 @@
 //! Storage benchmarks: publishing a watermarked asset with 1 M attribution records (one
-//! `BEGIN IMMEDIATE` transaction, prepared 512-row INSERTs), then reading pages and the summary.
+//! `BEGIN IMMEDIATE` transaction, prepared 512-row INSERTs), then reading pages and the summary;
+//! then the queue: how many jobs a second 1, 4 and 16 concurrent claimers take from a queue of
+//! 1 000 (each claim one transaction: the job's row, its lease, its audit row).
 //!
-//! Run: `cargo bench --bench store` (add `-- N` for another record count). Prints one line per
-//! measurement. SQLite in a temporary folder, or the database `SPLATMARK_BENCH_DATABASE_URL`
-//! names (an empty PostgreSQL database, for example).
+//! Run: `cargo bench --bench store` (add `-- N` for another record count, `-- 0` for the queue
+//! alone). Prints one line per measurement. SQLite in a temporary folder, or the database
+//! `SPLATMARK_BENCH_DATABASE_URL` names (an empty PostgreSQL database, for example).
 
 use splatmark::embed::attribution::AttributionRecord;
 use splatmark::embed::sbag::Role;
@@ -89,6 +91,94 @@ async fn run(n: u32) -> Result<(), Box<dyn std::error::Error>> {
         .claim("bench", Duration::from_secs(600))
         .await?
         .ok_or("no job to claim")?;
+    if n > 0 {
+        publish_and_read(&store, &original, claimed, n).await?;
+    }
+    for claimers in [1, 4, 16] {
+        claims(&store, &original, &message, 1000, claimers).await?;
+    }
+    store.close().await;
+    let Database::Sqlite(file) = &database else {
+        return Ok(());
+    };
+    let db = std::fs::metadata(file)?.len();
+    if n > 0 {
+        println!(
+            "database file after close: {:.1} MiB ({:.0} bytes per record)",
+            db as f64 / (1 << 20) as f64,
+            db as f64 / f64::from(n)
+        );
+    }
+    Ok(())
+}
+
+/// Enqueues `jobs` jobs, then `claimers` tasks claim until the queue is empty: claims per
+/// second and the claim latency's median and 99th percentile.
+async fn claims(
+    store: &Store,
+    original: &splatmark::store::Asset,
+    message: &[bool],
+    jobs: usize,
+    claimers: usize,
+) -> Result<(), Box<dyn std::error::Error>> {
+    for _ in 0..jobs {
+        store
+            .enqueue(
+                NewJob {
+                    asset_id: original.id,
+                    owner: "bench".into(),
+                    bits: 32,
+                    message: message.to_vec(),
+                    options: serde_json::json!({}),
+                    idempotency_key: None,
+                    max_attempts: 3,
+                },
+                AuditEntry::new("bench", "job.enqueue"),
+            )
+            .await?;
+    }
+    let t = Instant::now();
+    let mut tasks = Vec::new();
+    for k in 0..claimers {
+        let store = store.clone();
+        tasks.push(tokio::spawn(async move {
+            let mut lat = Vec::new();
+            loop {
+                let t = Instant::now();
+                let got = store
+                    .claim(&format!("bench-{k}"), Duration::from_secs(600))
+                    .await?;
+                if got.is_none() {
+                    return Ok::<_, splatmark::store::StoreError>(lat);
+                }
+                lat.push(t.elapsed());
+            }
+        }));
+    }
+    let mut lat = Vec::new();
+    for task in tasks {
+        lat.extend(task.await??);
+    }
+    let wall = t.elapsed();
+    assert_eq!(lat.len(), jobs, "every job claimed exactly once");
+    lat.sort();
+    let q = |p: f64| ms(lat[((lat.len() - 1) as f64 * p).round() as usize]);
+    println!(
+        "claim, {claimers} concurrent claimers, {jobs} jobs: {:.0} claims/s, p50 {:.2} ms, p99 {:.2} ms",
+        jobs as f64 / wall.as_secs_f64(),
+        q(0.5),
+        q(0.99)
+    );
+    Ok(())
+}
+
+/// Publishes `n` attribution records for `claimed`'s job, then reads pages and the summary.
+async fn publish_and_read(
+    store: &Store,
+    original: &splatmark::store::Asset,
+    claimed: splatmark::store::Claimed,
+    n: u32,
+) -> Result<(), Box<dyn std::error::Error>> {
     let recs = records(n);
     let blob = store.blobs().put_bytes(b"watermarked")?;
     let asset = NewAsset {
@@ -154,16 +244,6 @@ async fn run(n: u32) -> Result<(), Box<dyn std::error::Error>> {
         "attribution_summary over {} records: {:.0} ms",
         s.gaussians,
         ms(t.elapsed())
-    );
-    store.close().await;
-    let Database::Sqlite(file) = &database else {
-        return Ok(());
-    };
-    let db = std::fs::metadata(file)?.len();
-    println!(
-        "database file after close: {:.1} MiB ({:.0} bytes per record)",
-        db as f64 / (1 << 20) as f64,
-        db as f64 / f64::from(n)
     );
     Ok(())
 }

@@ -3,19 +3,22 @@
 # `apt-get install wrk`).
 #
 #   bash scripts/load-test.sh [--binary PATH] [--connections 100] [--duration 60] [--scene PLY]
+#                             [--database-url postgres://…]
 #
 # Starts the service on a fresh data folder (one CPU worker), uploads a scene, runs one small
 # watermarking job to the end (its result gives the attribution pages and the verification
 # target), then enqueues a default job and, while that job's worker finetunes, drives each
 # endpoint in turn with `--connections` clients for `--duration` seconds:
 #   GET /healthz · GET /v1/assets/{id} · GET /v1/assets/{result}/attribution?limit=100 ·
-#   POST /v1/verify (one 256² PNG render of the result, multipart)
+#   POST /v1/verify (one 256² PNG render of the result, multipart) ·
+#   POST /v1/assets/{id}/watermark (enqueue: a job row and an audit row per request)
 # and prints, per endpoint, requests/s and latency p50 / p90 / p99 (wrk --latency), the status
 # classes the server counted (/metrics before and after), and how many finetuning steps the
 # worker made during the phase (a starved worker would make none). Fails when any phase saw a
 # 5xx other than 503 (the verifier's "busy, retry" answer) or the worker made no progress.
 # The rate limits are raised for the run (verify_per_minute, auth_failures_per_minute) so that
-# the figures measure the service, not its limiter.
+# the figures measure the service, not its limiter. The store is SQLite in the data folder, or
+# the (empty) database `--database-url` names, e.g. one from scripts/pg-test-server.sh.
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -23,12 +26,14 @@ BIN=""
 CONNS=100
 DURATION=60
 SCENE=""
+DATABASE_URL=""
 while [ $# -gt 0 ]; do
   case "$1" in
     --binary) BIN="${2:?}"; shift 2 ;;
     --connections) CONNS="${2:?}"; shift 2 ;;
     --duration) DURATION="${2:?}"; shift 2 ;;
     --scene) SCENE="${2:?}"; shift 2 ;;
+    --database-url) DATABASE_URL="${2:?}"; shift 2 ;;
     -h|--help) sed -n '2,5p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; exit 0 ;;
     *) echo "load-test: unknown argument '$1'" >&2; exit 2 ;;
   esac
@@ -65,6 +70,7 @@ verify_per_minute = 1000000000
 auth_failures_per_minute = 1000000000
 EOF
 while read -r v; do [ "$v" = SPLATMARK_LOG ] || unset "$v"; done < <(compgen -e | grep '^SPLATMARK_' || true)
+[ -z "$DATABASE_URL" ] || export SPLATMARK_DATABASE_URL="$DATABASE_URL"
 "$BIN" serve --config "$WORK/load.toml" --bind "127.0.0.1:$PORT" --data-dir "$WORK/data" \
   --workers 1 --device cpu >"$WORK/server.log" 2>&1 &
 SERVER_PID=$!
@@ -125,6 +131,12 @@ print('wrk.body = "--" .. b .. "\\r\\nContent-Disposition: form-data; name=\\"as
       + ' .. "--" .. b .. "\\r\\nContent-Disposition: form-data; name=\\"image\\"; filename=\\"v.png\\"\\r\\nContent-Type: image/png\\r\\n\\r\\n"'
       + ' .. png .. "\\r\\n--" .. b .. "--\\r\\n"')
 PYEOF
+cat >"$WORK/enqueue.lua" <<EOF
+wrk.method = "POST"
+wrk.headers["Authorization"] = "Bearer $TOKEN"
+wrk.headers["Content-Type"] = "application/json"
+wrk.body = '{"bits":32}'
+EOF
 # Every response's status, counted per thread and summed at the end.
 cat >"$WORK/count.lua" <<'EOF'
 local threads = {}
@@ -141,13 +153,16 @@ end
 EOF
 cat "$WORK/count.lua" >>"$WORK/get.lua"
 cat "$WORK/count.lua" >>"$WORK/verify.lua"
+cat "$WORK/count.lua" >>"$WORK/enqueue.lua"
 
-echo "load-test: $CONNS connections × ${DURATION}s per endpoint, server 127.0.0.1:$PORT (1 CPU worker finetuning job $J2), $(nproc) cores"
+STORE=SQLite; [ -z "$DATABASE_URL" ] || STORE=PostgreSQL
+echo "load-test: $CONNS connections × ${DURATION}s per endpoint, server 127.0.0.1:$PORT ($STORE; 1 CPU worker finetuning job $J2), $(nproc) cores"
 printf '| endpoint | requests/s | p50 ms | p90 ms | p99 ms | responses by status | worker steps during the phase |\n|---|---|---|---|---|---|---|\n' >"$WORK/table.md"
 BAD=0
 for phase in "GET /healthz|$BASE/healthz|get" "GET /v1/assets/{id}|$BASE/v1/assets/$ASSET|get" \
              "GET /v1/assets/{id}/attribution|$BASE/v1/assets/$RESULT/attribution?limit=100|get" \
-             "POST /v1/verify (one 256² PNG)|$BASE/v1/verify|verify"; do
+             "POST /v1/verify (one 256² PNG)|$BASE/v1/verify|verify" \
+             "POST /v1/assets/{id}/watermark (enqueue)|$BASE/v1/assets/$ASSET/watermark|enqueue"; do
   IFS='|' read -r name url script <<<"$phase"
   s0=$(job_step "$J2")
   wrk -t2 -c"$CONNS" -d"${DURATION}s" --timeout 30s --latency -s "$WORK/$script.lua" "$url" >"$WORK/wrk.out" 2>&1 || true

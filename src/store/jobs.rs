@@ -336,7 +336,10 @@ impl Store {
         let mut tx = self.begin_immediate().await?;
         let now = time::now();
         // Oldest first; jobs created in the same millisecond in insertion order (SQLite's
-        // rowid, PostgreSQL's `seq`).
+        // rowid, PostgreSQL's `seq`). On PostgreSQL the row is locked, skipping rows another
+        // transaction holds: two claims never take one job even without the write lock, which
+        // every writer takes first (before any row lock, so that a claim and, say, a cancel of
+        // the same job cannot deadlock) because each appends to the one audit chain.
         let row = sqlx::query(match self.backend() {
             Backend::Sqlite => {
                 "SELECT id, message_nonce, message_ct, mask_nonce, mask_ct FROM jobs \
@@ -346,7 +349,7 @@ impl Store {
             Backend::Postgres => {
                 "SELECT id, message_nonce, message_ct, mask_nonce, mask_ct FROM jobs \
                  WHERE state IN ('queued', 'failed') AND not_before <= $1 \
-                 ORDER BY created_at, seq LIMIT 1"
+                 ORDER BY created_at, seq LIMIT 1 FOR UPDATE SKIP LOCKED"
             }
         })
         .bind(&now)
