@@ -101,6 +101,19 @@ pub fn plan(
     m_bits: usize,
     cfg: &EmbedConfig,
 ) -> Result<Plan, RenderError> {
+    plan_over(g, cams, cams, m_bits, cfg)
+}
+
+/// [`plan`], pruning by contribution over every training view in `cams` and measuring SBAG's
+/// visibility over `visible` (a subset of them: [`pipeline::spread_views`]) — a Gaussian that
+/// only a view outside the subset shows is kept, never pruned.
+pub fn plan_over(
+    g: &Gaussians,
+    cams: &[Camera],
+    visible: &[Camera],
+    m_bits: usize,
+    cfg: &EmbedConfig,
+) -> Result<Plan, RenderError> {
     let (pruned, report) = match &cfg.prune {
         Some(p) => {
             let (s, r) = prune::prune(g, cams, p)?;
@@ -109,7 +122,7 @@ pub fn plan(
         None => (g.clone(), None),
     };
     let scores = experts::trio_experts(&pruned, &cfg.experts);
-    let sb = sbag::sbag(&pruned, &scores, cams, m_bits, &cfg.sbag)?;
+    let sb = sbag::sbag(&pruned, &scores, visible, m_bits, &cfg.sbag)?;
     let split = &sb.split;
     let r_out: Vec<[f32; 3]> = split
         .source

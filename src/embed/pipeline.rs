@@ -14,7 +14,7 @@ use super::finetune::{
 };
 use super::mask::MaskConfig;
 use super::sbag::Budget;
-use super::{EmbedConfig, plan};
+use super::{EmbedConfig, plan_over};
 use crate::decoder::WatermarkModel;
 use crate::decoder::projection::ViewProjection;
 use crate::render::gpu::Rasterizer;
@@ -57,6 +57,13 @@ pub struct EmbedOptions {
     /// break udon, whose cameras sit close to the scene (turned copies see it from inside or
     /// from nowhere, and the fidelity bound then collapses the writes): 0 by default.
     pub extra_views: usize,
+    /// Training views SBAG's visibility, the calibration (matched head, decoder gain) and the
+    /// reference logits read: at most this many, spread over the training cameras
+    /// ([`spread_views`]); 0 reads every one. Those phases' cost grows with the views while a
+    /// finetuning step's does not, so a longer orbit costs little more than a short one.
+    /// Pruning reads every training view (a Gaussian only an unread view shows stays), and the
+    /// finetuning cycles through every one.
+    pub analysis_views: usize,
 }
 
 impl Default for EmbedOptions {
@@ -69,8 +76,55 @@ impl Default for EmbedOptions {
             view_scales: vec![1.0],
             projection: ProjectionConfig::default(),
             extra_views: 0,
+            analysis_views: 0,
         }
     }
+}
+
+/// The indices of at most `m` of `cameras` spread over them (`m` = 0 or ≥ the count: all, in
+/// order): farthest-point sampling on the cameras' centres and viewing directions from the
+/// first camera, returned sorted — deterministic, even over the positions (an orbit's higher,
+/// smaller rings keep fewer views than the wide ones), every region of the rig kept.
+pub fn spread_views(cameras: &[Camera], m: usize) -> Vec<usize> {
+    let n = cameras.len();
+    if m == 0 || m >= n {
+        return (0..n).collect();
+    }
+    let centres: Vec<glam::Vec3> = cameras.iter().map(Camera::center).collect();
+    let mean = centres.iter().copied().sum::<glam::Vec3>() / n as f32;
+    let radius = centres
+        .iter()
+        .map(|c| c.distance(mean))
+        .fold(0.0f32, f32::max)
+        .max(1e-6);
+    // A camera as a point: its centre relative to the rig (unit radius) and where it looks.
+    let points: Vec<[f32; 6]> = cameras
+        .iter()
+        .zip(&centres)
+        .map(|(c, &p)| {
+            let q = (p - mean) / radius;
+            let d = c.rotation_mat().row(2);
+            [q.x, q.y, q.z, d.x, d.y, d.z]
+        })
+        .collect();
+    let dist = |a: &[f32; 6], b: &[f32; 6]| -> f32 {
+        a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum()
+    };
+    let mut chosen = vec![0usize];
+    let mut nearest: Vec<f32> = points.iter().map(|p| dist(p, &points[0])).collect();
+    while chosen.len() < m {
+        let (next, _) =
+            nearest.iter().enumerate().fold(
+                (0, f32::MIN),
+                |best, (i, &d)| if d > best.1 { (i, d) } else { best },
+            );
+        chosen.push(next);
+        for (k, p) in points.iter().enumerate() {
+            nearest[k] = nearest[k].min(dist(p, &points[next]));
+        }
+    }
+    chosen.sort_unstable();
+    chosen
 }
 
 /// Checks [`EmbedOptions::view_scales`] without cameras: at least one factor, each in
@@ -284,6 +338,23 @@ pub fn embed(
         &opts.finetune.rasterizer,
     )?;
     let t_targets = t.elapsed().as_secs_f64();
+    // What planning and calibration read: every training view, or a spread subset of them.
+    let pick = spread_views(cameras, opts.analysis_views);
+    let analysis: Vec<Camera> = pick.iter().map(|&i| cameras[i].clone()).collect();
+    let analysis_targets: Vec<View> = if pick.len() == cameras.len() {
+        Vec::new()
+    } else {
+        let per_scale = finetune_cameras.len();
+        (0..opts.view_scales.len())
+            .flat_map(|s| pick.iter().map(move |&i| s * per_scale + i))
+            .map(|k| views[k].clone())
+            .collect()
+    };
+    let reference_views = if analysis_targets.is_empty() {
+        &views[..]
+    } else {
+        &analysis_targets[..]
+    };
 
     report_phase(&mut progress, Phase::Plan)?;
     let t = Instant::now();
@@ -294,7 +365,7 @@ pub fn embed(
             ..cfg.mask
         };
     }
-    let p = plan(g, cameras, message.len(), &cfg)?;
+    let p = plan_over(g, cameras, &analysis, message.len(), &cfg)?;
     let t_plan = t.elapsed().as_secs_f64();
 
     report_phase(&mut progress, Phase::Calibrate)?;
@@ -305,7 +376,7 @@ pub fn embed(
         plain.projection = None;
         Some(fit_projection(
             g,
-            cameras,
+            &analysis,
             &plain,
             &ro,
             &opts.projection,
@@ -325,7 +396,7 @@ pub fn embed(
     let reference = if opts.reference {
         Some(reference_logits(
             g,
-            &views,
+            reference_views,
             model,
             &ro,
             &opts.finetune.rasterizer,
@@ -488,5 +559,56 @@ mod tests {
             let e = scaled_views(&cams, bad).unwrap_err().to_string();
             assert!(e.contains(needle), "{bad:?}: {e}");
         }
+    }
+
+    #[test]
+    fn spread_views_keep_every_band_of_an_orbit_and_every_azimuth_region() {
+        let g = object_scene(50, 0, 1);
+        let o = OrbitOptions {
+            count: 48,
+            width: 32,
+            height: 32,
+            ..OrbitOptions::default()
+        };
+        let bands = o.elevations_deg.len();
+        let (train, _) = split_views(&orbit_cameras(&g, &o).unwrap(), 8);
+        assert_eq!(train.len(), 42);
+        let pick = spread_views(&train, 24);
+        assert_eq!(pick.len(), 24);
+        assert!(
+            pick.windows(2).all(|w| w[0] < w[1]),
+            "sorted, distinct: {pick:?}"
+        );
+        assert_eq!(pick, spread_views(&train, 24), "deterministic");
+        // Every band of elevations keeps views (the sampling is even over the sphere of
+        // positions, so the 60° ring, half the others' circumference, keeps fewer).
+        let elevation = |c: &Camera| c.rotation_mat().row(2).y;
+        let mut levels: Vec<f32> = train.iter().map(elevation).collect();
+        levels.sort_by(f32::total_cmp);
+        levels.dedup_by(|a, b| (*a - *b).abs() < 1e-3);
+        assert_eq!(levels.len(), bands);
+        for l in levels {
+            let n = pick
+                .iter()
+                .filter(|&&i| (elevation(&train[i]) - l).abs() < 1e-3)
+                .count();
+            assert!(n >= 3, "{n} views at band {l}: {pick:?}");
+        }
+        // No half of the orbit is left out: every 90° of azimuth holds picked views.
+        let azimuth = |c: &Camera| {
+            let p = c.center();
+            p.z.atan2(p.x).to_degrees().rem_euclid(360.0)
+        };
+        for q in 0..4 {
+            let lo = q as f32 * 90.0;
+            assert!(
+                pick.iter()
+                    .any(|&i| (lo..lo + 90.0).contains(&azimuth(&train[i]))),
+                "no view in [{lo}, {}): {pick:?}",
+                lo + 90.0
+            );
+        }
+        assert_eq!(spread_views(&train, 0), (0..42).collect::<Vec<_>>());
+        assert_eq!(spread_views(&train, 100), (0..42).collect::<Vec<_>>());
     }
 }

@@ -527,6 +527,30 @@ fn plan_is_consistent_end_to_end() {
 }
 
 #[test]
+fn planning_over_a_subset_of_the_views_prunes_over_all_of_them() {
+    let g = object_scene(2500, 1, 9);
+    let views = cams(&g, 6, 80);
+    let cfg = EmbedConfig {
+        prune: Some(Default::default()),
+        ..Default::default()
+    };
+    let kept = |p: &Plan| p.prune.as_ref().unwrap().kept.clone();
+    let all = plan(&g, &views, 32, &cfg).unwrap();
+    let one = plan(&g, &views[..1], 32, &cfg).unwrap();
+    // One view alone leaves Gaussians unseen that the others show: pruning them would cut
+    // holes in the views the finetuning renders.
+    assert!(kept(&one).len() < kept(&all).len());
+    let over = plan_over(&g, &views, &views[..1], 32, &cfg).unwrap();
+    assert_eq!(kept(&over), kept(&all));
+    // Visibility, and so the carriers, from the one view.
+    let pruned = subset(&g, &kept(&all));
+    let one_view = visibility(&pruned, &views[..1], &cfg.sbag).unwrap();
+    assert_eq!(over.sbag.visibility, one_view);
+    assert_eq!(over.sbag.visibility.eta_per_view.len(), 1);
+    assert_eq!(all.sbag.visibility.eta_per_view.len(), views.len());
+}
+
+#[test]
 fn real_scene_smoke_donut() {
     let path = PathBuf::from(concat!(
         env!("CARGO_MANIFEST_DIR"),

@@ -202,6 +202,8 @@ pub struct QualityRun {
     pub carriers: usize,
     pub compensators: usize,
     pub embed_s: f64,
+    /// The embedding's seconds per phase (targets, planning, calibration, finetuning).
+    pub phases: crate::embed::pipeline::Timings,
     pub eval_s: f64,
     pub eval: SceneEval,
     pub targets: Vec<TargetCheck>,
@@ -467,8 +469,14 @@ pub fn run(
                 ControlFlow::Continue(())
             })?;
             let embed_s = t0.elapsed().as_secs_f64();
+            let t = &out.report.timings;
             log.line(&format!(
-                "  embedded in {embed_s:.1} s; evaluating on {} unseen views…",
+                "  embedded in {embed_s:.1} s (targets {:.1}, plan {:.1}, calibrate {:.1}, \
+                 finetune {:.1}); evaluating on {} unseen views…",
+                t.targets,
+                t.plan,
+                t.calibrate,
+                t.finetune,
                 unseen.len()
             ));
             let t1 = Instant::now();
@@ -491,6 +499,7 @@ pub fn run(
                 carriers: out.report.carriers,
                 compensators: out.report.compensators,
                 embed_s,
+                phases: out.report.timings.clone(),
                 eval_s: t1.elapsed().as_secs_f64(),
                 eval,
                 targets,
