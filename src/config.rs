@@ -66,11 +66,14 @@ impl Role {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ViewDefaults {
-    /// Orbit views for 32-bit payloads.
+    /// Orbit views for 32-bit payloads: 48, as for longer ones since the planning and the
+    /// calibration read at most `EmbedOptions::analysis_views` of them (24) — twice the 24
+    /// views of before bring every 32-bit payload measured over 98.5 % of the bits on unseen
+    /// views (two of four did not) for ~3 % more time (docs/RESULTS.md).
     pub orbit: usize,
-    /// Orbit views for longer payloads (48 and 64 bits): twice as many carry 4–6 points more of
-    /// their bits to unseen views for ~1.3–1.6× the embedding time (donut, 512²: 48 bits 92.4 →
-    /// 96.7 %, 64 bits 89.6 → 95.3 %; docs/RESULTS.md).
+    /// Orbit views for longer payloads (48 and 64 bits): 48 carry 4–6 points more of their bits
+    /// to unseen views than 24 (donut, 512²: 48 bits 92.4 → 96.7 %, 64 bits 89.6 → 95.3 %;
+    /// docs/RESULTS.md).
     pub orbit_long: usize,
     pub width: u32,
     pub height: u32,
@@ -90,7 +93,7 @@ impl ViewDefaults {
 impl Default for ViewDefaults {
     fn default() -> Self {
         Self {
-            orbit: 24,
+            orbit: 48,
             orbit_long: 48,
             width: 512,
             height: 512,

@@ -391,7 +391,7 @@ pub(crate) struct ViewArgs {
     #[arg(long, conflicts_with = "orbit")]
     cameras: Option<PathBuf>,
     /// N orbit views around the scene's robust bounds instead (default when no --cameras is
-    /// given: as the service — 24 for a 32-bit payload, 48 for 48 and 64 bits).
+    /// given: as the service — 48, `[views]` in the config).
     #[arg(long)]
     orbit: Option<usize>,
     /// Image width (orbit default 512, as the service; with --cameras the camera's own width,

@@ -76,7 +76,7 @@ impl Default for EmbedOptions {
             view_scales: vec![1.0],
             projection: ProjectionConfig::default(),
             extra_views: 0,
-            analysis_views: 0,
+            analysis_views: 24,
         }
     }
 }
@@ -178,6 +178,8 @@ impl EmbedOptions {
                 ..ProjectionConfig::default()
             },
             extra_views: 0,
+            // The paper reads every training view.
+            analysis_views: 0,
             ..Self::default()
         }
     }

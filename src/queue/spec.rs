@@ -174,11 +174,21 @@ mod tests {
         assert_eq!(s.embed.finetune.steps, cfg.steps);
         assert!(s.use_cameras);
         assert_eq!(s.holdout_every, 8);
-        // Longer payloads train on more views, unless the client names a count.
+        // Longer payloads train on `orbit_long` views, unless the client names a count.
+        let cfg = Config {
+            views: crate::config::ViewDefaults {
+                orbit: 24,
+                ..cfg.views.clone()
+            },
+            ..cfg
+        };
+        assert_eq!(
+            JobOptions::default().resolve(&cfg, 32).unwrap().orbit.count,
+            24
+        );
         for bits in [48, 64] {
             let s = JobOptions::default().resolve(&cfg, bits).unwrap();
             assert_eq!(s.orbit.count, cfg.views.orbit_long);
-            assert!(cfg.views.orbit_long > cfg.views.orbit);
         }
         let named: JobOptions = serde_json::from_value(json!({"orbit": {"count": 12}})).unwrap();
         assert_eq!(named.resolve(&cfg, 64).unwrap().orbit.count, 12);

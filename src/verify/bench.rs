@@ -6,8 +6,8 @@
 //! use, watermarked through the dataset's training cameras on its own background and judged on
 //! its test cameras), and each message length:
 //!
-//! 1. **Training views as the CLI makes them**: `splatmark embed`'s defaults — 24 orbit views
-//!    for 32 bits, 48 for longer payloads (or `train_views`) (elevations −20°, 10°, 35°, 60°) at `size`², every `holdout_every`-th held out by
+//! 1. **Training views as the CLI makes them**: `splatmark embed`'s defaults — 48 orbit views
+//!    (or `train_views`) (elevations −20°, 10°, 35°, 60°) at `size`², every `holdout_every`-th held out by
 //!    the CLI — or, for a scene with its own cameras (udon), every camera but every
 //!    `holdout_every_cameras`-th.
 //! 2. **Embedding with [`EmbedOptions::default`]** and a uniformly random payload (what the
@@ -85,7 +85,7 @@ pub struct QualityOptions {
     /// the service (`config::ViewDefaults`, 512).
     pub size: u32,
     /// Orbit views to train on; `None`: what the CLI and the service take for the payload
-    /// (`config::ViewDefaults::orbit_for`: 24 at 32 bits, 48 above) …
+    /// (`config::ViewDefaults::orbit_for`: 48) …
     pub train_views: Option<usize>,
     /// Their elevations (view `i` at `train_elevations[i % len]`; the orbit's default).
     pub train_elevations: Vec<f32>,
