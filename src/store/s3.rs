@@ -11,8 +11,9 @@
 //!   its name and its size the object's; otherwise [`StoreError::BlobCorrupt`], nothing cached.
 //!   A cache hit is checked cheaply: a HEAD says the object still exists (a blob the garbage
 //!   collector of another replica removed is `NotFound` here too, and its cache copy dropped)
-//!   and the cached file must have its size. The cache is not bounded: files older than a day
-//!   are removed at start and by each garbage collection.
+//!   and the cached file must have its size (a copy cut short by a crash is fetched again;
+//!   one altered in place at its size is not detected). The cache is not bounded by size:
+//!   files not used for a day are removed at start and by each garbage collection.
 //! - **Age for the garbage collector** is the object's `LastModified`. Committing bytes that are
 //!   already stored must make the blob young again (the collector's age rule protects a blob
 //!   whose asset row is about to be written): S3 cannot set a modification time, so the object
@@ -560,6 +561,10 @@ impl S3Blobs {
             return Err(StoreError::NotFound);
         };
         if fs::metadata(&cached).is_ok_and(|m| m.is_file() && m.len() == meta.size) {
+            // Used now: the cache's pruning keeps it another day.
+            if let Ok(f) = File::options().write(true).open(&cached) {
+                let _ = f.set_modified(std::time::SystemTime::now());
+            }
             return Ok(cached);
         }
         fs::create_dir_all(&self.tmp)?;
