@@ -365,19 +365,22 @@ async fn run_job(ctx: &Ctx, w: &WorkerSpec, c: Claimed) {
         }
     };
     let cameras_blob = match &asset.cameras_sha256 {
-        Some(h) => match {
+        Some(h) => {
             let (blobs, id) = (ctx.store.blobs().clone(), h.clone());
-            tokio::task::spawn_blocking(move || blobs.size_of(&id))
+            let size = tokio::task::spawn_blocking(move || blobs.size_of(&id))
                 .await
                 .map_err(|e| StoreError::Io(std::io::Error::other(e)))
-                .and_then(|r| r)
-        } {
-            Ok(size) => Some(BlobRef {
-                sha256: h.clone(),
-                size,
-            }),
-            Err(e) => return fail(ctx, job.id, token, &format!("the cameras blob: {e}")).await,
-        },
+                .and_then(|r| r);
+            match size {
+                Ok(size) => Some(BlobRef {
+                    sha256: h.clone(),
+                    size,
+                }),
+                Err(e) => {
+                    return fail(ctx, job.id, token, &format!("the cameras blob: {e}")).await;
+                }
+            }
+        }
         None => None,
     };
     let stem = asset

@@ -461,14 +461,10 @@ impl S3Blobs {
     /// Stores the hashed bytes of `file` (`size` bytes, named `sha256`): uploaded unless an
     /// object of that size is there already, which is touched instead.
     pub(crate) fn commit(&self, file: &File, sha256: &str, size: u64) -> io::Result<()> {
-        match self.head(sha256)? {
-            Some(m) if m.size == size => {
-                if self.touch(sha256)? {
-                    return Ok(());
-                }
-            }
-            // Another size: an object that does not hold these bytes, replaced.
-            _ => {}
+        // An object of another size does not hold these bytes: replaced.
+        let same = self.head(sha256)?.is_some_and(|m| m.size == size);
+        if same && self.touch(sha256)? {
+            return Ok(());
         }
         self.upload(file, sha256, size)
     }
