@@ -379,7 +379,8 @@ impl S3Blobs {
         Ok(S3Blobs {
             store: Arc::new(store),
             url: url.clone(),
-            endpoint,
+            // For messages only: no user-info password.
+            endpoint: endpoint.map(|e| super::database::redact(&e)),
             rt: OwnedRuntime(Some(rt)),
             secrets,
             multipart_threshold: options.multipart_threshold,
@@ -392,7 +393,7 @@ impl S3Blobs {
     /// `s3://BUCKET/PREFIX` and the endpoint, for messages.
     pub(crate) fn describe(&self) -> String {
         match &self.endpoint {
-            Some(e) => format!("{} at {}", self.url, super::database::redact(e)),
+            Some(e) => format!("{} at {e}", self.url),
             None => self.url.to_string(),
         }
     }
@@ -805,6 +806,23 @@ mod tests {
         ] {
             assert!(!shown.contains("hunter22"), "{shown}");
         }
+        // The client itself (nothing is sent), an endpoint with a password included.
+        let dir = tempfile::tempdir().unwrap();
+        let with_endpoint = BlobConfig::S3 {
+            url: BlobUrl::parse("s3://bucket/p").unwrap(),
+            options: S3Options {
+                endpoint: Some("http://user:endpoint-pw-1@127.0.0.1:1".into()),
+                ..o.clone()
+            },
+        };
+        let b =
+            crate::store::BlobStore::open_with(dir.path().join("blobs"), &with_endpoint).unwrap();
+        let shown = format!("{b:?} {}", b.describe());
+        assert!(
+            !shown.contains("hunter22") && !shown.contains("endpoint-pw-1"),
+            "{shown}"
+        );
+        assert!(shown.contains("s3://bucket/p"), "{shown}");
         assert_eq!(
             scrub(
                 "x hunter22-very-secret y".into(),
