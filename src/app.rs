@@ -42,13 +42,15 @@ impl App {
             .with_context(|| format!("cannot create {}", cfg.data_dir.display()))?;
         let lock = DataDirLock::acquire(&cfg.data_dir, LockMode::Shared)?;
         let database = cfg.database();
-        let store = Store::open_with(&cfg.data_dir, &database, master)
+        let blobs = cfg.blobs();
+        let store = Store::open_with_blobs(&cfg.data_dir, &database, &blobs, master)
             .await
             .with_context(|| {
-                format!(
-                    "cannot open the store ({database}, blobs in {})",
-                    cfg.data_dir.display()
-                )
+                let at = match &blobs {
+                    crate::store::BlobConfig::S3 { url, .. } => url.to_string(),
+                    crate::store::BlobConfig::Local => cfg.data_dir.display().to_string(),
+                };
+                format!("cannot open the store ({database}, blobs in {at})")
             })?;
         let admin_token_file = if cfg.role.serves_api() {
             bootstrap_admin(&store, &cfg).await?

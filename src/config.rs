@@ -112,6 +112,14 @@ pub struct Config {
     /// The database (`sqlite://PATH` or `postgres://USER:PASSWORD@HOST:PORT/DB`); `None`:
     /// `DATA_DIR/splatmark.db`. Blobs stay in `DATA_DIR/blobs/`. Never printed with its password.
     pub database_url: Option<crate::store::Database>,
+    /// Where the blobs live: `None`, `DATA_DIR/blobs/`; `s3://BUCKET/optional/prefix`, a
+    /// bucket of an S3-compatible object store shared by every process (then `DATA_DIR/blobs/`
+    /// holds only staged uploads and a verified read cache). The client's settings are in `s3`.
+    pub blob_url: Option<crate::store::BlobUrl>,
+    /// The S3 client (endpoint, region, credentials, multipart sizes) for an `s3://` blob URL;
+    /// unset fields come from the standard `AWS_*` environment variables. The secret key is
+    /// never printed.
+    pub s3: crate::store::S3Options,
     /// What this process runs: `all` (default), `api` or `worker`.
     pub role: Role,
     /// Number of workers; `None`: one per GPU adapter, or one CPU worker.
@@ -191,6 +199,17 @@ impl Config {
             .unwrap_or_else(|| crate::store::Database::in_data_dir(&self.data_dir))
     }
 
+    /// Where the store keeps the blobs: `blob_url` with the `s3` settings, or `DATA_DIR/blobs`.
+    pub fn blobs(&self) -> crate::store::BlobConfig {
+        match &self.blob_url {
+            Some(url) => crate::store::BlobConfig::S3 {
+                url: url.clone(),
+                options: self.s3.clone(),
+            },
+            None => crate::store::BlobConfig::Local,
+        }
+    }
+
     /// The upload memory budget in KiB (the unit of [`crate::http::AppState::upload_memory`]).
     pub fn upload_memory_kib(&self) -> u64 {
         self.upload_memory_mb.min(MAX_UPLOAD_MEMORY_MB) * 1024
@@ -203,6 +222,8 @@ impl Default for Config {
             bind: SocketAddr::from(([127, 0, 0, 1], 8080)),
             data_dir: PathBuf::from("data"),
             database_url: None,
+            blob_url: None,
+            s3: crate::store::S3Options::default(),
             role: Role::All,
             workers: None,
             device: DevicePolicy::Auto,
@@ -314,6 +335,26 @@ impl Config {
             })?;
             self.database_url = Some(db);
         }
+        if let Some(v) = get("SPLATMARK_BLOB_URL") {
+            let v = v.trim().to_owned();
+            self.blob_url = if v.is_empty() {
+                None
+            } else {
+                // Parsed here, not by `env!`: its error would repeat the value.
+                Some(
+                    crate::store::BlobUrl::parse(&v).map_err(|e| ConfigError::Env {
+                        name: "SPLATMARK_BLOB_URL",
+                        value: crate::store::database::redact(&v),
+                        message: e.to_string(),
+                    })?,
+                )
+            };
+        }
+        env!(
+            "SPLATMARK_S3_MULTIPART_THRESHOLD",
+            self.s3.multipart_threshold
+        );
+        env!("SPLATMARK_S3_PART_SIZE", self.s3.part_size);
         env!("SPLATMARK_ROLE", self.role);
         env!("SPLATMARK_WORKERS", some self.workers);
         if let Some(v) = get("SPLATMARK_DEVICE") {
@@ -391,6 +432,12 @@ impl Config {
         }
         if self.max_verify_pixels < 64 * 64 {
             return bad("max_verify_pixels must allow one 64×64 image");
+        }
+        if self.s3.part_size < crate::store::s3::MIN_PART_SIZE {
+            return bad("s3.part_size must be at least 5242880 (5 MiB, S3's smallest part)");
+        }
+        if self.s3.multipart_threshold == 0 {
+            return bad("s3.multipart_threshold must be at least 1");
         }
         if self.max_image_side < 64 {
             return bad("max_image_side must be at least 64 (the decoder reads ≥ 64 px)");
@@ -474,6 +521,66 @@ mod tests {
             ..Config::default()
         };
         assert!(c.validate().is_err());
+    }
+
+    #[test]
+    fn the_blob_url_is_read_and_the_s3_secret_never_shown() {
+        use crate::store::BlobConfig;
+        let dir = tempfile::tempdir().unwrap();
+        assert_eq!(Config::default().blobs(), BlobConfig::Local);
+        let f = dir.path().join("s.toml");
+        std::fs::write(
+            &f,
+            "blob_url = \"s3://splats/prod\"\n[s3]\nendpoint = \"http://127.0.0.1:8333\"\n\
+             access_key_id = \"AKIDEXAMPLE\"\nsecret_access_key = \"wJalrXUtnFEMI-hunter2\"\n",
+        )
+        .unwrap();
+        let c = Config::from_file(Some(&f)).unwrap();
+        c.validate().unwrap();
+        match c.blobs() {
+            BlobConfig::S3 { url, options } => {
+                assert_eq!(url.to_string(), "s3://splats/prod");
+                assert_eq!(
+                    options.secret_access_key.as_ref().map(|s| s.expose()),
+                    Some("wJalrXUtnFEMI-hunter2")
+                );
+            }
+            other => panic!("{other:?}"),
+        }
+        for shown in [
+            format!("{c:?}"),
+            format!("{:?}", c.blobs()),
+            toml::to_string(&c).unwrap(),
+        ] {
+            assert!(!shown.contains("hunter2"), "{shown}");
+        }
+        let c = Config::default()
+            .with_env(env(&[
+                ("SPLATMARK_BLOB_URL", "s3://other-bucket"),
+                ("SPLATMARK_S3_PART_SIZE", "6291456"),
+            ]))
+            .unwrap();
+        assert_eq!(c.blob_url.as_ref().unwrap().bucket(), "other-bucket");
+        assert_eq!(c.s3.part_size, 6 << 20);
+        let e = Config::default()
+            .with_env(env(&[(
+                "SPLATMARK_BLOB_URL",
+                "s3://AKID:wJalrXUtnFEMI-hunter2@splats/x",
+            )]))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("SPLATMARK_BLOB_URL") && !e.contains("hunter2"),
+            "{e}"
+        );
+        let small = Config {
+            s3: crate::store::S3Options {
+                part_size: 1 << 20,
+                ..Default::default()
+            },
+            ..Config::default()
+        };
+        assert!(small.validate().is_err());
     }
 
     #[test]

@@ -222,7 +222,7 @@ async fn hostile_corpus() {
         .upload(&k.owner, "ok.ply", ply_bytes(&object_scene(300, 0, 1)))
         .await;
     assert_eq!(r.status(), StatusCode::CREATED);
-    let kept = stored_blobs(&t.data());
+    let kept = t.stored_blobs();
     let good_view = image::RgbImage::from_pixel(64, 64, image::Rgb([90, 120, 200]));
     t.verify(&k.verifier, &[good_view], None).await;
     let before_rss = rss_bytes();
@@ -335,7 +335,7 @@ async fn hostile_corpus() {
 
     // No 5xx, nothing stored beyond the warm-up's upload, no upload audited but that one.
     assert_eq!(responses_of_class(&t, "5xx").await, before_5xx);
-    assert_eq!(stored_blobs(&t.data()), kept);
+    assert_eq!(t.stored_blobs(), kept);
     assert_eq!(t.audited(&k.auditor, "asset.upload").await, 1);
     // Memory: the whole corpus leaves the process within 64 MB of where it started.
     if let (Some(a), Some(b)) = (before_rss, rss_bytes()) {

@@ -584,8 +584,10 @@ async fn a_backup_of_a_live_server_mid_job_restores_whole() {
     use splatmark::store::backup::{backup, restore};
     let dir = tempfile::tempdir().unwrap();
     let mut cfg = config(dir.path());
-    // `backup` copies an SQLite database (PostgreSQL's are backed up with its own tools).
+    // `backup` copies an SQLite database (PostgreSQL's are backed up with its own tools) and
+    // the blob folder (a bucket is backed up with the object store's own tools).
     cfg.database_url = None;
+    cfg.blob_url = None;
     let master = MasterKey::generate().to_hex();
     let mut t = TestApp::boot(dir, cfg.clone(), master.clone(), None).await;
     let k = t.keys().await;

@@ -1,11 +1,13 @@
 //! Many processes on one PostgreSQL database (issue 17): two API replicas (`serve --role api`)
 //! and three worker processes (`serve --role worker`), the real binary, sharing the database and
-//! the blob folder. Thirty jobs go in through both replicas; two workers are killed (SIGKILL)
-//! mid-job and replaced. Every job must finish exactly once: one watermarked asset, one key and
-//! one full set of attribution rows per job, and the audit chain verifies.
+//! the blobs — with `SPLATMARK_TEST_S3`, an S3 bucket, each process with a data folder of its
+//! own (staging and read cache only); without it, one shared blob folder. Thirty jobs go in
+//! through both replicas; two workers are killed (SIGKILL) mid-job and replaced. Every job must
+//! finish exactly once: one watermarked asset, one key and one full set of attribution rows per
+//! job, every asset's blob in the store, and the audit chain verifies.
 //!
-//! Runs in the PostgreSQL pass of `scripts/test.sh` (`SPLATMARK_TEST_POSTGRES`); without a
-//! server it prints SKIPPED.
+//! Runs in the PostgreSQL pass of `scripts/test.sh` (`SPLATMARK_TEST_POSTGRES`, and
+//! `SPLATMARK_TEST_S3` when an S3 server started); without PostgreSQL it prints SKIPPED.
 
 mod common;
 
@@ -13,11 +15,11 @@ use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use common::{ply_bytes, small_job, test_database};
+use common::{ply_bytes, small_job, test_blobs, test_database};
 use reqwest::StatusCode;
 use serde_json::{Value, json};
 use splatmark::scene::synthetic::object_scene;
-use splatmark::store::{Database, MasterKey};
+use splatmark::store::{BlobConfig, BlobStore, Database, MasterKey};
 use sqlx::Connection;
 
 struct Process {
@@ -40,13 +42,21 @@ fn free_port() -> u16 {
         .port()
 }
 
-/// Starts `serve --role ROLE` on `db` and the shared data folder; returns once `/healthz`
-/// answers.
-async fn serve(role: &str, data: &Path, db: &Database, master: &str, log: &Path) -> Process {
+/// Starts `serve --role ROLE` on `db`, data folder `data` and the blobs in `blobs` (the
+/// S3 settings as an operator gives them: `SPLATMARK_BLOB_URL` and the standard `AWS_*`
+/// variables); returns once `/healthz` answers.
+async fn serve(
+    role: &str,
+    data: &Path,
+    db: &Database,
+    blobs: &BlobConfig,
+    master: &str,
+    log: &Path,
+) -> Process {
     let port = free_port();
     let log = std::fs::File::create(log).unwrap();
-    let child = Command::new(env!("CARGO_BIN_EXE_splatmark"))
-        .args(["serve", "--role", role, "--workers", "1", "--device", "cpu"])
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_splatmark"));
+    cmd.args(["serve", "--role", role, "--workers", "1", "--device", "cpu"])
         .arg("--data-dir")
         .arg(data)
         .arg("--bind")
@@ -56,9 +66,23 @@ async fn serve(role: &str, data: &Path, db: &Database, master: &str, log: &Path)
         // Leases of killed workers expire fast.
         .env("SPLATMARK_LEASE_SECONDS", "3")
         .stdout(Stdio::null())
-        .stderr(log)
-        .spawn()
-        .unwrap();
+        .stderr(log);
+    if let BlobConfig::S3 { url, options } = blobs {
+        cmd.env("SPLATMARK_BLOB_URL", url.to_string())
+            .env("AWS_ENDPOINT_URL", options.endpoint.as_deref().unwrap())
+            .env("AWS_REGION", options.region.as_deref().unwrap())
+            .env(
+                "AWS_ACCESS_KEY_ID",
+                options.access_key_id.as_deref().unwrap(),
+            )
+            .env(
+                "AWS_SECRET_ACCESS_KEY",
+                options.secret_access_key.as_ref().unwrap().expose(),
+            )
+            // Scenes of a few hundred kB go up in parts.
+            .env("SPLATMARK_S3_MULTIPART_THRESHOLD", "65536");
+    }
+    let child = cmd.spawn().unwrap();
     let p = Process {
         child,
         base: format!("http://127.0.0.1:{port}"),
@@ -88,19 +112,44 @@ async fn api_replicas_and_killed_workers_finish_every_job_exactly_once() {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
-    let data = dir.path().join("data");
+    let blobs = test_blobs().unwrap_or_default();
+    let on_s3 = blobs != BlobConfig::Local;
+    if !on_s3 {
+        eprintln!(
+            "NOTE: no S3 server (SPLATMARK_TEST_S3): the processes share one blob folder; \
+             scripts/test.sh starts one"
+        );
+    }
+    // On S3 every process has a data folder of its own, as on separate machines.
+    let data_of = |name: &str| {
+        if on_s3 {
+            dir.path().join(format!("data-{name}"))
+        } else {
+            dir.path().join("data")
+        }
+    };
+    let data = data_of("api1");
     let master = MasterKey::generate().to_hex();
     let logs = dir.path();
     // The first replica bootstraps the admin key; the second starts once it exists.
-    let api1 = serve("api", &data, &db, &master, &logs.join("api1.log")).await;
-    let api2 = serve("api", &data, &db, &master, &logs.join("api2.log")).await;
+    let api1 = serve("api", &data, &db, &blobs, &master, &logs.join("api1.log")).await;
+    let api2 = serve(
+        "api",
+        &data_of("api2"),
+        &db,
+        &blobs,
+        &master,
+        &logs.join("api2.log"),
+    )
+    .await;
     let mut workers = Vec::new();
     for i in 0..3 {
         workers.push(
             serve(
                 "worker",
-                &data,
+                &data_of(&format!("w{i}")),
                 &db,
+                &blobs,
                 &master,
                 &logs.join(format!("w{i}.log")),
             )
@@ -223,7 +272,8 @@ async fn api_replicas_and_killed_workers_finish_every_job_exactly_once() {
                 drop(dead); // SIGKILL: no release, no cleanup
                 killed += 1;
                 let log = logs.join(format!("w-new{killed}.log"));
-                workers.push(serve("worker", &data, &db, &master, &log).await);
+                let own = data_of(&format!("w-new{killed}"));
+                workers.push(serve("worker", &own, &db, &blobs, &master, &log).await);
             }
             None => tokio::time::sleep(Duration::from_millis(200)).await,
         }
@@ -301,6 +351,44 @@ async fn api_replicas_and_killed_workers_finish_every_job_exactly_once() {
         .await
             >= i64::from(jobs) + 2
     );
+    // Every asset's blob is in the store, whole; on S3 no process kept a blob in its own
+    // folder (staging and the read cache only).
+    let root = if on_s3 {
+        dir.path().join("check-blobs")
+    } else {
+        data.join("blobs")
+    };
+    let store = BlobStore::open_with(root, &blobs).unwrap();
+    let ids: Vec<String> = sqlx::query_scalar("SELECT sha256 FROM assets")
+        .fetch_all(&mut conn)
+        .await
+        .unwrap();
+    assert_eq!(ids.len(), jobs as usize + 1);
+    let stored = tokio::task::spawn_blocking(move || {
+        for id in &ids {
+            store.read(id).unwrap();
+        }
+        store.list().unwrap()
+    })
+    .await
+    .unwrap();
+    assert!(stored.len() > jobs as usize, "{} blobs", stored.len());
+    if on_s3 {
+        for e in std::fs::read_dir(dir.path()).unwrap().flatten() {
+            let blob_dir = e.path().join("blobs");
+            if !blob_dir.is_dir() {
+                continue;
+            }
+            for sub in std::fs::read_dir(&blob_dir).unwrap().flatten() {
+                let name = sub.file_name();
+                assert!(
+                    name == "tmp" || name == "cache",
+                    "{} in a process's own folder",
+                    sub.path().display()
+                );
+            }
+        }
+    }
     let chain: Value = client
         .get(format!("{}/v1/audit/verify", api2.base))
         .bearer_auth(&auditor)

@@ -17,7 +17,7 @@ use splatmark::render::RenderOptions;
 use splatmark::scene::orbit::orbit_cameras;
 use splatmark::scene::synthetic::object_scene;
 use splatmark::scene::write_ply;
-use splatmark::store::MasterKey;
+use splatmark::store::{BlobConfig, MasterKey};
 use splatmark::verify::eval::render_views;
 use splatmark::verify::message::to_hex;
 
@@ -46,13 +46,32 @@ async fn no_secret_reaches_a_log_line_at_debug_level() {
         .init();
 
     let dir = tempfile::tempdir().unwrap();
-    let cfg = Config {
+    let mut cfg = Config {
         bind: "127.0.0.1:0".parse().unwrap(),
         data_dir: dir.path().join("data"),
         workers: Some(1),
         device: DevicePolicy::Cpu,
         ..Config::default()
     };
+    // With an S3 test server (SPLATMARK_TEST_S3), the blobs go there, and its secret key
+    // joins the secrets searched for (the HTTP client's own debug lines included).
+    let mut s3_secret = None;
+    if let Some(server) = std::env::var("SPLATMARK_TEST_S3")
+        .ok()
+        .filter(|s| !s.is_empty())
+    {
+        let prefix = format!("t-{}", uuid::Uuid::new_v4().simple());
+        let Ok(BlobConfig::S3 { url, options }) = BlobConfig::test_server(&server, &prefix, 4096)
+        else {
+            panic!("SPLATMARK_TEST_S3 is http://KEY:SECRET@HOST:PORT/BUCKET");
+        };
+        s3_secret = options
+            .secret_access_key
+            .as_ref()
+            .map(|s| s.expose().to_string());
+        cfg.blob_url = Some(url);
+        cfg.s3 = options;
+    }
     let master = MasterKey::generate();
     let master_hex = master.to_hex();
     let app = App::start(cfg.clone(), master, None).await.unwrap();
@@ -220,6 +239,7 @@ async fn no_secret_reaches_a_log_line_at_debug_level() {
         ("wrong guess", wrong),
     ];
     secrets.extend(tokens.into_iter().map(|t| ("API token", t)));
+    secrets.extend(s3_secret.map(|s| ("S3 secret access key", s)));
     // The token's secret part alone, too (a log that strips the prefix still leaks).
     let parts: Vec<(&str, String)> = secrets
         .iter()

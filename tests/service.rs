@@ -2,7 +2,6 @@
 //! a temporary database and blob folder): uploads in every format and the ways they go wrong,
 //! keys and scopes, idempotency, rate limits, audit queries, metrics and the served spec.
 
-use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use reqwest::StatusCode;
@@ -78,11 +77,7 @@ async fn bad_uploads_get_4xx_problems_and_leave_nothing_behind() {
         .unwrap();
     assert_problem(r, StatusCode::BAD_REQUEST).await;
     // Nothing stored: no blob, no asset row, no upload in the audit log.
-    assert!(
-        stored_blobs(&t.data()).is_empty(),
-        "{:?}",
-        stored_blobs(&t.data())
-    );
+    assert!(t.stored_blobs().is_empty(), "{:?}", t.stored_blobs());
     assert_eq!(t.audited(&k.auditor, "asset.upload").await, 0);
     // …and a good upload still works.
     let r = t.upload(&k.owner, "ok.ply", good).await;
@@ -114,7 +109,7 @@ async fn uploads_are_checked_within_the_memory_budget() {
         "{p}"
     );
     // Refused before it was read: nothing stored or audited.
-    assert!(stored_blobs(&t.data()).is_empty());
+    assert!(t.stored_blobs().is_empty());
     assert_eq!(t.audited(&k.auditor, "asset.upload").await, 0);
     // Scenes that fit are checked and stored, each giving its memory back: 25 000 Gaussians
     // take ≈ 2.5 MB, so the second fits only once the first has returned its reservation.
@@ -423,7 +418,7 @@ async fn cameras_uploaded_with_a_scene_are_validated_too() {
     let r = post(b"{\"frames\": 7}".to_vec()).await.unwrap();
     let p = assert_problem(r, StatusCode::UNPROCESSABLE_ENTITY).await;
     assert!(p["detail"].as_str().unwrap().contains("cameras"), "{p}");
-    assert_eq!(stored_blobs(&t.data()), Vec::<PathBuf>::new());
+    assert_eq!(t.stored_blobs(), Vec::<String>::new());
     let r = post(serde_json::to_vec(&cams).unwrap()).await.unwrap();
     assert_eq!(r.status(), StatusCode::CREATED);
     let a: Value = r.json().await.unwrap();
@@ -487,7 +482,7 @@ async fn an_upload_whose_insert_fails_leaves_no_blob_behind() {
         .as_str()
         .unwrap()
         .to_string();
-    let before = stored_blobs(&t.data());
+    let before = t.stored_blobs();
     assert_eq!(before.len(), 1, "{before:?}");
 
     // The database refuses every new asset row (as a full disk or a broken file would).
@@ -519,7 +514,7 @@ async fn an_upload_whose_insert_fails_leaves_no_blob_behind() {
     assert!(!p["detail"].as_str().unwrap().contains("refused"), "{p}");
     let r = t.upload(&k.owner, "again.ply", kept.clone()).await;
     assert_problem(r, StatusCode::INTERNAL_SERVER_ERROR).await;
-    assert_eq!(stored_blobs(&t.data()), before);
+    assert_eq!(t.stored_blobs(), before);
 
     t.allow_inserts("assets").await;
     let f = t.get(&k.owner, &format!("/v1/assets/{kept_id}/file")).await;
@@ -583,7 +578,7 @@ async fn uploaded_cameras_never_touch_the_servers_files() {
     }
     assert!(details.windows(2).all(|w| w[0] == w[1]), "{details:?}");
     // Nothing was stored.
-    assert_eq!(stored_blobs(&t.data()), Vec::<PathBuf>::new());
+    assert_eq!(t.stored_blobs(), Vec::<String>::new());
     // With its size in the file, the same camera is accepted: the path is only a name, and
     // the server's PNG (64×48) is not what sized it.
     let r = post(png.to_string_lossy().into_owned(), true)
@@ -679,7 +674,7 @@ async fn stalled_and_vanishing_uploads_are_client_errors_not_server_errors() {
     // Neither counts as a server error, and neither left a blob behind.
     tokio::time::sleep(Duration::from_millis(200)).await;
     assert_eq!(responses_of_class(&t, "5xx").await, before);
-    assert!(stored_blobs(&t.data()).is_empty());
+    assert!(t.stored_blobs().is_empty());
     t.stop().await;
 }
 
@@ -871,7 +866,7 @@ async fn cameras_no_job_could_render_are_refused_at_upload() {
         .await;
         assert!(v["detail"].as_str().unwrap().contains(says), "{v}");
     }
-    assert_eq!(stored_blobs(&t.data()), Vec::<PathBuf>::new());
+    assert_eq!(t.stored_blobs(), Vec::<String>::new());
     // The same file within the limits is an asset.
     assert_eq!(post(96, 72, 3).await.unwrap().status(), StatusCode::CREATED);
     t.stop().await;

@@ -143,9 +143,10 @@ pub(crate) fn keys_cmd(c: &KeysCommand) -> Result<()> {
         .build()?;
     rt.block_on(async {
         std::fs::create_dir_all(&cfg.data_dir)?;
-        let store = Store::open_with(
+        let store = Store::open_with_blobs(
             &cfg.data_dir,
             &cfg.database(),
+            &cfg.blobs(),
             crate::app::master_key(&cfg)?,
         )
         .await?;
@@ -182,6 +183,12 @@ pub(crate) struct RestoreArgs {
 /// `backup` and `restore` copy an SQLite file and the blobs: a PostgreSQL database is backed up
 /// with the server's own tools.
 fn sqlite_only(cfg: &Config, command: &str) -> Result<()> {
+    if let Some(url) = &cfg.blob_url {
+        anyhow::bail!(
+            "`{command}` copies the blob folder; the blobs are in an object store ({url}): back \
+             the bucket up with its own tools (versioning, replication, a copy)"
+        );
+    }
     let db = cfg.database();
     match db {
         crate::store::Database::Sqlite(ref path)

@@ -490,7 +490,7 @@ pub async fn file(
         }
         return Ok(r);
     }
-    let path = st.store.blobs().path(&a.sha256)?;
+    let path = blob_path(&st, &a.sha256).await?;
     let (body, length) = if to == stored {
         let f = tokio::fs::File::open(&path)
             .await
@@ -527,6 +527,15 @@ pub async fn file(
         h.insert(header::CONTENT_DISPOSITION, v);
     }
     Ok(r)
+}
+
+/// A local file holding blob `sha256` (on S3 downloaded, verified and cached first: on a
+/// blocking thread, as every blob store call from async code).
+pub(super) async fn blob_path(st: &AppState, sha256: &str) -> ApiResult<std::path::PathBuf> {
+    let (blobs, id) = (st.store.blobs().clone(), sha256.to_owned());
+    Ok(tokio::task::spawn_blocking(move || blobs.path(&id))
+        .await
+        .map_err(ApiError::internal)??)
 }
 
 /// Bytes of memory parsing the stored scene at `path` (in `from`) takes, plus `per_gaussian`
@@ -609,7 +618,7 @@ pub(super) async fn load_scenes(
     for a in assets {
         let from = Format::parse(&a.format)
             .ok_or_else(|| ApiError::internal(format!("stored format {:?}", a.format)))?;
-        let path = st.store.blobs().path(&a.sha256)?;
+        let path = blob_path(st, &a.sha256).await?;
         need = need.saturating_add(parse_need(&path, from, limits, per_gaussian).await?);
         files.push((path, from));
     }

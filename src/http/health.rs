@@ -19,7 +19,8 @@ pub async fn healthz() -> Response {
     Json(json!({"status": "ok"})).into_response()
 }
 
-/// `GET /readyz`: 200 when the database answers and every worker is running, else 503.
+/// `GET /readyz`: 200 when the database (and an S3 blob store) answers and every worker is
+/// running, else 503.
 pub async fn readyz(State(st): State<AppState>) -> ApiResult<Response> {
     if let Err(e) = st.store.ping().await {
         return Err(ApiError::new(
@@ -27,6 +28,25 @@ pub async fn readyz(State(st): State<AppState>) -> ApiResult<Response> {
             "Not ready",
             format!("the database does not answer: {e}"),
         ));
+    }
+    if st.store.blobs().is_remote() {
+        // An S3 blob store must answer too (a LIST under the prefix, at most 5 s).
+        let blobs = st.store.blobs().clone();
+        let check = tokio::task::spawn_blocking(move || blobs.check());
+        let failed = match tokio::time::timeout(std::time::Duration::from_secs(5), check).await {
+            Ok(Ok(Ok(()))) => None,
+            Ok(Ok(Err(e))) => Some(e.to_string()),
+            Ok(Err(e)) => Some(e.to_string()),
+            Err(_) => Some("no answer within 5 s".to_string()),
+        };
+        if let Some(e) = failed {
+            tracing::warn!(error = %e, "readiness: the blob store does not answer");
+            return Err(ApiError::new(
+                StatusCode::SERVICE_UNAVAILABLE,
+                "Not ready",
+                "the blob store does not answer; the error is logged",
+            ));
+        }
     }
     let workers = st.pool.workers.load(Ordering::Relaxed);
     let alive = st.pool.alive.load(Ordering::Relaxed);

@@ -211,15 +211,22 @@ async fn run_job(ctx: &Ctx, w: &WorkerSpec, c: Claimed) {
         Err(e) => return fail(ctx, job.id, token, &e).await,
     };
     spec.embed.finetune.rasterizer = w.rasterizer.clone();
-    let (scene_path, cams_path, tmp) = match (|| {
-        let s = ctx.store.blobs().path(&asset.sha256)?;
-        let c = match &asset.cameras_sha256 {
-            Some(h) => Some(ctx.store.blobs().path(h)?),
+    // On S3 the blobs are downloaded (verified) into the local cache: a blocking thread.
+    let blobs = ctx.store.blobs().clone();
+    let (scene_id, cams_id) = (asset.sha256.clone(), asset.cameras_sha256.clone());
+    let fetched = tokio::task::spawn_blocking(move || {
+        let s = blobs.path(&scene_id)?;
+        let c = match &cams_id {
+            Some(h) => Some(blobs.path(h)?),
             None => None,
         };
-        let t = ctx.store.blobs().temp_file()?;
+        let t = blobs.temp_file()?;
         Ok::<_, StoreError>((s, c, t))
-    })() {
+    })
+    .await
+    .map_err(|e| StoreError::Io(std::io::Error::other(e)))
+    .and_then(|r| r);
+    let (scene_path, cams_path, tmp) = match fetched {
         Ok(x) => x,
         Err(e) => return fail(ctx, job.id, token, &e.to_string()).await,
     };
@@ -358,18 +365,22 @@ async fn run_job(ctx: &Ctx, w: &WorkerSpec, c: Claimed) {
         }
     };
     let cameras_blob = match &asset.cameras_sha256 {
-        Some(h) => match ctx
-            .store
-            .blobs()
-            .path(h)
-            .and_then(|p| Ok(std::fs::metadata(p)?.len()))
-        {
-            Ok(size) => Some(BlobRef {
-                sha256: h.clone(),
-                size,
-            }),
-            Err(e) => return fail(ctx, job.id, token, &format!("the cameras blob: {e}")).await,
-        },
+        Some(h) => {
+            let (blobs, id) = (ctx.store.blobs().clone(), h.clone());
+            let size = tokio::task::spawn_blocking(move || blobs.size_of(&id))
+                .await
+                .map_err(|e| StoreError::Io(std::io::Error::other(e)))
+                .and_then(|r| r);
+            match size {
+                Ok(size) => Some(BlobRef {
+                    sha256: h.clone(),
+                    size,
+                }),
+                Err(e) => {
+                    return fail(ctx, job.id, token, &format!("the cameras blob: {e}")).await;
+                }
+            }
+        }
         None => None,
     };
     let stem = asset

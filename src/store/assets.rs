@@ -110,66 +110,85 @@ impl Store {
     /// Removes blobs that no asset references (scene or cameras) and that are older than
     /// `min_age` — left by a publish or an upload that failed after its blob was committed.
     /// Committing touches a blob, so the age rule protects blobs whose asset row is about to be
-    /// written. One audit row "blob.gc" when anything was removed.
+    /// written, whichever process committed them. The blobs are listed without a lock; the
+    /// candidates are then checked again and removed under the database's write lock: each is
+    /// still unreferenced (rows are only written under that lock, after their blobs were
+    /// checked under it too) and still old enough (a commit of the same bytes by any replica
+    /// since the listing made it young). One audit row "blob.gc" when anything was removed.
+    /// Cached copies of S3 blobs older than [`CACHE_MAX_AGE`] are dropped too.
     pub async fn collect_garbage(&self, min_age: std::time::Duration) -> Result<GcReport> {
-        let referenced: std::collections::HashSet<String> = sqlx::query_scalar(
-            "SELECT sha256 FROM assets UNION SELECT cameras_sha256 FROM assets \
-             WHERE cameras_sha256 IS NOT NULL",
-        )
-        .fetch_all(&self.pool)
-        .await?
-        .into_iter()
-        .collect();
         let blobs = self.blobs().clone();
-        let (report, removed) = tokio::task::spawn_blocking(move || -> Result<_> {
-            let mut report = GcReport::default();
+        let listed = tokio::task::spawn_blocking(move || {
+            blobs.prune_cache(CACHE_MAX_AGE);
+            blobs.list()
+        })
+        .await
+        .map_err(join_error)??;
+        let mut report = GcReport {
+            scanned: listed.len() as u64,
+            ..GcReport::default()
+        };
+        let referenced = referenced_blobs(&mut *self.pool.acquire().await?).await?;
+        let candidates: Vec<String> = listed
+            .into_iter()
+            .filter(|b| {
+                !referenced.contains(&b.id) && b.age >= min_age && !self.blobs().is_pinned(&b.id)
+            })
+            .map(|b| b.id)
+            .collect();
+        if candidates.is_empty() {
+            return Ok(report);
+        }
+        let mut tx = self.begin_immediate().await?;
+        let referenced = referenced_blobs(&mut tx).await?;
+        let candidates: Vec<String> = candidates
+            .into_iter()
+            .filter(|id| !referenced.contains(id))
+            .collect();
+        let blobs = self.blobs().clone();
+        let removed = tokio::task::spawn_blocking(move || {
             let mut removed = Vec::new();
-            for (id, path, size, age) in blobs.list()? {
-                report.scanned += 1;
-                if referenced.contains(&id) || age < min_age || blobs.is_pinned(&id) {
-                    continue;
-                }
-                match std::fs::remove_file(&path) {
-                    Ok(()) => {
-                        report.removed += 1;
-                        report.bytes += size;
-                        removed.push(id);
-                    }
+            for id in candidates {
+                match blobs.remove_if_old(&id, min_age) {
+                    Ok(Some(size)) => removed.push((id, size)),
+                    Ok(None) => {}
                     Err(e) => tracing::warn!(blob = %id, error = %e, "could not remove a blob"),
                 }
             }
-            Ok((report, removed))
+            removed
         })
         .await
-        .map_err(|e| StoreError::Io(std::io::Error::other(e)))??;
-        if report.removed > 0 {
-            let mut entry = AuditEntry::new("system", "blob.gc");
-            entry.details = serde_json::json!({
-                "removed": report.removed,
-                "bytes": report.bytes,
-                "blobs": removed,
-            });
-            self.append_audit(entry).await?;
+        .map_err(join_error)?;
+        if removed.is_empty() {
+            tx.rollback().await?;
+            return Ok(report);
         }
+        report.removed = removed.len() as u64;
+        report.bytes = removed.iter().map(|(_, size)| size).sum();
+        let mut entry = AuditEntry::new("system", "blob.gc");
+        entry.details = serde_json::json!({
+            "removed": report.removed,
+            "bytes": report.bytes,
+            "blobs": removed.iter().map(|(id, _)| id).collect::<Vec<_>>(),
+        });
+        audit::append_in(&mut tx, &entry).await?;
+        tx.commit().await?;
         Ok(report)
     }
 
     /// Removes the blobs an operation committed for a row it then failed to write (a rejected
-    /// upload), so that a failed request leaves nothing on disk: each pinned blob that no asset
-    /// references and that no other pin holds (a concurrent upload of the same bytes) is deleted.
-    /// Runs under the database's write lock, so no row referencing the blob can be written
-    /// meanwhile. Returns how many blobs were removed.
+    /// upload), so that a failed request leaves nothing behind: each pinned blob that no asset
+    /// references and that no other pin of this process holds (a concurrent upload of the same
+    /// bytes) is deleted. Runs under the database's write lock, so no row referencing the blob
+    /// can be written meanwhile (a replica that committed the same bytes at the same moment
+    /// finds its blob gone when it checks it under the lock, and its request fails cleanly;
+    /// no row ever references a missing blob). Returns how many blobs were removed.
     pub async fn discard_unreferenced(&self, pins: Vec<PinnedBlob>) -> Result<u64> {
         if pins.is_empty() {
             return Ok(0);
         }
-        // The same bytes may be pinned twice by the caller (scene and cameras alike).
-        let mut own = std::collections::HashMap::<&str, usize>::new();
-        for pin in &pins {
-            *own.entry(pin.blob().sha256.as_str()).or_default() += 1;
-        }
         let mut tx = self.begin_immediate().await?;
-        let mut removed = 0;
+        let mut unused = Vec::new();
         for (i, pin) in pins.iter().enumerate() {
             let id = &pin.blob().sha256;
             if pins[..i].iter().any(|p| &p.blob().sha256 == id) {
@@ -182,10 +201,25 @@ impl Store {
             .bind(id)
             .fetch_one(&mut *tx)
             .await?;
-            if used == 0 && self.blobs().remove_if_only_pin(pin, own[id.as_str()])? {
-                removed += 1;
+            if used == 0 {
+                unused.push(i);
             }
         }
+        let blobs = self.blobs().clone();
+        let removed = tokio::task::spawn_blocking(move || {
+            // The same bytes may be pinned twice by the caller (scene and cameras alike).
+            let own = |id: &str| pins.iter().filter(|p| p.blob().sha256 == id).count();
+            let mut removed = 0;
+            for i in unused {
+                let pin = &pins[i];
+                if blobs.remove_if_only_pin(pin, own(&pin.blob().sha256))? {
+                    removed += 1;
+                }
+            }
+            Ok::<_, std::io::Error>(removed)
+        })
+        .await
+        .map_err(join_error)??;
         tx.rollback().await?;
         Ok(removed)
     }
@@ -195,6 +229,7 @@ impl Store {
     pub async fn insert_asset(&self, a: NewAsset, mut audit_entry: AuditEntry) -> Result<Asset> {
         self.validate_asset(&a)?;
         let mut tx = self.begin_immediate().await?;
+        self.check_blobs(&a).await?;
         let asset = insert_in(&mut tx, &a).await?;
         audit_entry.asset_id.get_or_insert(asset.id);
         audit::append_in(&mut tx, &audit_entry).await?;
@@ -260,7 +295,7 @@ impl Store {
         rows.iter().map(decode_asset).collect()
     }
 
-    /// Field checks and the blobs' presence and sizes.
+    /// Field checks (the blobs are checked by [`Self::check_blobs`]).
     pub(crate) fn validate_asset(&self, a: &NewAsset) -> Result<()> {
         if a.owner.is_empty() || a.owner.len() > MAX_NAME || a.owner.chars().any(char::is_control) {
             return Err(StoreError::invalid(
@@ -296,7 +331,7 @@ impl Store {
             }
             _ => {}
         }
-        self.check_blob(&a.blob)?;
+        check_blob_id(&a.blob)?;
         match (&a.cameras_blob, &a.cameras_format) {
             (None, None) => {}
             (Some(b), Some(f)) => {
@@ -306,7 +341,7 @@ impl Store {
                         "camera format must be 1..=32 of [a-z0-9_] (e.g. \"inria\", \"nerf\", \"llff\")",
                     ));
                 }
-                self.check_blob(b)?;
+                check_blob_id(b)?;
             }
             _ => {
                 return Err(StoreError::invalid(
@@ -317,25 +352,68 @@ impl Store {
         Ok(())
     }
 
-    fn check_blob(&self, b: &BlobRef) -> Result<()> {
-        if !is_blob_id(&b.sha256) {
-            return Err(StoreError::invalid(
-                "blob id must be 64 lowercase hex digits",
-            ));
-        }
-        match self.blobs().size_of(&b.sha256) {
-            Ok(size) if size == b.size => Ok(()),
-            Ok(size) => Err(StoreError::invalid(format!(
-                "blob {} has {size} bytes, not {}",
-                b.sha256, b.size
-            ))),
-            Err(StoreError::NotFound) => Err(StoreError::invalid(format!(
-                "blob {} is not stored",
-                b.sha256
-            ))),
-            Err(e) => Err(e),
-        }
+    /// The asset's blobs are stored with their sizes (`Invalid` otherwise). Called under the
+    /// write lock, just before the row is written: the garbage collector of any replica
+    /// removes blobs under that lock only, so a blob checked here stays until the row exists.
+    pub(crate) async fn check_blobs(&self, a: &NewAsset) -> Result<()> {
+        let blobs = self.blobs().clone();
+        let wanted: Vec<BlobRef> = std::iter::once(a.blob.clone())
+            .chain(a.cameras_blob.clone())
+            .collect();
+        tokio::task::spawn_blocking(move || {
+            for b in &wanted {
+                match blobs.size_of(&b.sha256) {
+                    Ok(size) if size == b.size => {}
+                    Ok(size) => {
+                        return Err(StoreError::invalid(format!(
+                            "blob {} has {size} bytes, not {}",
+                            b.sha256, b.size
+                        )));
+                    }
+                    Err(StoreError::NotFound) => {
+                        return Err(StoreError::invalid(format!(
+                            "blob {} is not stored",
+                            b.sha256
+                        )));
+                    }
+                    Err(e) => return Err(e),
+                }
+            }
+            Ok(())
+        })
+        .await
+        .map_err(join_error)?
     }
+}
+
+/// How long a cached copy of an S3 blob stays in the local cache.
+pub const CACHE_MAX_AGE: std::time::Duration = std::time::Duration::from_secs(24 * 3600);
+
+fn check_blob_id(b: &BlobRef) -> Result<()> {
+    if is_blob_id(&b.sha256) {
+        Ok(())
+    } else {
+        Err(StoreError::invalid(
+            "blob id must be 64 lowercase hex digits",
+        ))
+    }
+}
+
+/// A blocking task that panicked or was cancelled.
+fn join_error(e: tokio::task::JoinError) -> StoreError {
+    StoreError::Io(std::io::Error::other(e))
+}
+
+/// Every blob an asset references (scene or cameras).
+async fn referenced_blobs(conn: &mut AnyConnection) -> Result<std::collections::HashSet<String>> {
+    Ok(sqlx::query_scalar(
+        "SELECT sha256 FROM assets UNION SELECT cameras_sha256 FROM assets \
+         WHERE cameras_sha256 IS NOT NULL",
+    )
+    .fetch_all(conn)
+    .await?
+    .into_iter()
+    .collect())
 }
 
 /// Inserts a validated asset on `conn` (inside the caller's transaction).

@@ -1,7 +1,10 @@
-//! Content-addressed blobs on disk: `blobs/ab/cdef…` named by the SHA-256 of their bytes (so
-//! names are always server-made), written as temp file in `blobs/tmp` + fsync + rename.
+//! Content-addressed blobs named by the SHA-256 of their bytes (so names are always
+//! server-made): on disk, `blobs/ab/cdef…`, written as temp file in `blobs/tmp` + fsync + rename;
+//! or in an S3-compatible object store (`store::s3`), staged in the same local temp folder and
+//! read back through a verified local cache.
 
 use super::error::{Result, StoreError};
+use super::s3::{BlobConfig, S3Blobs};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 use std::collections::HashMap;
@@ -9,6 +12,7 @@ use std::fs::{self, File};
 use std::io::{self, Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, PoisonError};
+use std::time::Duration;
 
 /// A committed blob: its id (lowercase hex SHA-256) and size in bytes.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -19,12 +23,25 @@ pub struct BlobRef {
     pub size: u64,
 }
 
-/// The blob directory.
+/// A stored blob as the garbage collector sees it.
+#[derive(Clone, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub struct BlobInfo {
+    pub id: String,
+    pub size: u64,
+    /// Since the blob was last committed (file mtime, or the object's `LastModified`).
+    pub age: Duration,
+}
+
+/// The blob store: the local blob folder (`DATA_DIR/blobs`: the blobs themselves, or on S3 the
+/// staging `tmp` and the verified read `cache`). Every method may block on I/O — on S3 on the
+/// network —, so async code calls them from `spawn_blocking`. Cheap to clone.
 #[derive(Clone, Debug)]
 pub struct BlobStore {
     root: PathBuf,
     /// How many [`PinnedBlob`]s of this process hold each blob id.
     pins: Arc<Mutex<HashMap<String, usize>>>,
+    /// The object store holding the blobs, when they are not in `root`.
+    remote: Option<Arc<S3Blobs>>,
 }
 
 /// A blob committed by [`BlobStore::commit_pinned`] for a row that is not written yet. While it
@@ -77,7 +94,47 @@ impl BlobStore {
         Ok(BlobStore {
             root,
             pins: Arc::default(),
+            remote: None,
         })
+    }
+
+    /// Opens the blob store `config` names, with `root` as its local folder (the blobs
+    /// themselves, or the staging and cache folders of an object store). Sends nothing: see
+    /// [`Self::check`].
+    pub fn open_with(root: PathBuf, config: &BlobConfig) -> Result<Self> {
+        let mut store = Self::open(root)?;
+        if let BlobConfig::S3 { url, options } = config {
+            store.remote = Some(Arc::new(S3Blobs::new(&store.root, url, options)?));
+        }
+        Ok(store)
+    }
+
+    /// Where the blobs are, for messages: the folder or `s3://BUCKET/PREFIX at ENDPOINT`
+    /// (never a secret).
+    pub fn describe(&self) -> String {
+        match &self.remote {
+            Some(r) => r.describe(),
+            None => self.root.display().to_string(),
+        }
+    }
+
+    /// The object store side (tests tamper with objects through it).
+    #[cfg(test)]
+    pub(crate) fn remote(&self) -> Option<&S3Blobs> {
+        self.remote.as_deref()
+    }
+
+    /// Whether the blobs are in an object store (shared by every process that names it).
+    pub fn is_remote(&self) -> bool {
+        self.remote.is_some()
+    }
+
+    /// Checks that the store answers (S3: a LIST under the prefix; a folder: nothing to do).
+    pub fn check(&self) -> io::Result<()> {
+        match &self.remote {
+            Some(r) => r.check(),
+            None => Ok(()),
+        }
     }
 
     /// A new temporary file in `blobs/tmp` (same file system as the blobs, so [`Self::commit`]
@@ -101,6 +158,11 @@ impl BlobStore {
         sha256: String,
         size: u64,
     ) -> io::Result<BlobRef> {
+        if let Some(r) = &self.remote {
+            // Uploaded (or touched) before this returns; the temp file goes when dropped.
+            r.commit(tmp.as_file(), &sha256, size)?;
+            return Ok(BlobRef { sha256, size });
+        }
         let dest = self.location(&sha256);
         // An existing file of another size is a truncated leftover: replaced below. An existing
         // complete one is touched, so the garbage collector's age rule sees it as new until the
@@ -159,7 +221,16 @@ impl BlobStore {
         if pins.get(&pin.blob.sha256).copied().unwrap_or(0) > own {
             return Ok(false);
         }
-        let path = self.location(&pin.blob.sha256);
+        self.remove(&pin.blob.sha256)
+    }
+
+    /// Removes blob `sha256` (the file, or the object and its cached copy); `Ok(false)` when
+    /// it was not there.
+    fn remove(&self, sha256: &str) -> io::Result<bool> {
+        if let Some(r) = &self.remote {
+            return r.remove(sha256);
+        }
+        let path = self.location(sha256);
         match fs::remove_file(&path) {
             Ok(()) => {
                 if let Some(dir) = path.parent() {
@@ -179,10 +250,15 @@ impl BlobStore {
         self.commit(tmp)
     }
 
-    /// The path of an existing blob; `Invalid` for anything but 64 lowercase hex digits,
-    /// `NotFound` when no such blob is stored.
+    /// The path of a local file holding an existing blob: the blob's own file, or on S3 its
+    /// verified cached copy (downloaded when missing; `BlobCorrupt` when the object's bytes do
+    /// not hash to its name). `Invalid` for anything but 64 lowercase hex digits, `NotFound`
+    /// when no such blob is stored.
     pub fn path(&self, sha256: &str) -> Result<PathBuf> {
         validate_id(sha256)?;
+        if let Some(r) = &self.remote {
+            return r.fetch(sha256);
+        }
         let p = self.location(sha256);
         match fs::metadata(&p) {
             Ok(m) if m.is_file() => Ok(p),
@@ -192,9 +268,12 @@ impl BlobStore {
         }
     }
 
-    /// The bytes of a blob.
+    /// The bytes of a blob (on S3 verified as [`Self::path`] does).
     pub fn read(&self, sha256: &str) -> Result<Vec<u8>> {
         validate_id(sha256)?;
+        if self.remote.is_some() {
+            return Ok(fs::read(self.path(sha256)?)?);
+        }
         match fs::read(self.location(sha256)) {
             Ok(b) => Ok(b),
             Err(e) if e.kind() == io::ErrorKind::NotFound => Err(StoreError::NotFound),
@@ -203,15 +282,60 @@ impl BlobStore {
     }
 
     /// Size of a stored blob (`NotFound` when missing).
-    pub(crate) fn size_of(&self, sha256: &str) -> Result<u64> {
+    pub fn size_of(&self, sha256: &str) -> Result<u64> {
+        validate_id(sha256)?;
+        if let Some(r) = &self.remote {
+            return r.size_of(sha256);
+        }
         Ok(fs::metadata(self.path(sha256)?)?.len())
     }
 
-    /// Every committed blob: `(id, path, size, age)` (files that are not blobs are skipped).
-    pub(crate) fn list(&self) -> io::Result<Vec<(String, PathBuf, u64, std::time::Duration)>> {
+    /// Removes blob `sha256` if it is at least `min_age` old now and no [`PinnedBlob`] of this
+    /// process holds it; its size when removed. The garbage collector's last check, made under
+    /// the database's write lock: a commit of the same bytes by any process since the blob was
+    /// listed made it young again.
+    pub(crate) fn remove_if_old(&self, sha256: &str, min_age: Duration) -> io::Result<Option<u64>> {
+        let pins = self.pins.lock().unwrap_or_else(PoisonError::into_inner);
+        if pins.contains_key(sha256) {
+            return Ok(None);
+        }
+        let (size, age) = match &self.remote {
+            Some(r) => match r.stat(sha256)? {
+                Some(x) => x,
+                None => return Ok(None),
+            },
+            None => match fs::metadata(self.location(sha256)) {
+                Ok(m) => (m.len(), file_age(&m)),
+                Err(e) if e.kind() == io::ErrorKind::NotFound => return Ok(None),
+                Err(e) => return Err(e),
+            },
+        };
+        if age < min_age {
+            return Ok(None);
+        }
+        Ok(self.remove(sha256)?.then_some(size))
+    }
+
+    /// Removes cached copies of S3 blobs older than `max_age` (nothing for a local folder).
+    pub(crate) fn prune_cache(&self, max_age: Duration) {
+        if let Some(r) = &self.remote {
+            r.prune_cache(max_age);
+        }
+    }
+
+    /// Every committed blob with its size and age (files that are not blobs are skipped).
+    pub fn list(&self) -> io::Result<Vec<BlobInfo>> {
+        if let Some(r) = &self.remote {
+            return Ok(r
+                .list()?
+                .into_iter()
+                .map(|(id, size, age)| BlobInfo { id, size, age })
+                .collect());
+        }
         let mut out = Vec::new();
         for dir in fs::read_dir(&self.root)?.flatten() {
             let head = dir.file_name().to_string_lossy().into_owned();
+            // `tmp` and `cache` have longer names.
             if head.len() != 2 || !dir.file_type().is_ok_and(|t| t.is_dir()) {
                 continue;
             }
@@ -221,12 +345,11 @@ impl BlobStore {
                 if !is_blob_id(&id) || !meta.is_file() {
                     continue;
                 }
-                let age = meta
-                    .modified()
-                    .ok()
-                    .and_then(|t| t.elapsed().ok())
-                    .unwrap_or_default();
-                out.push((id, f.path(), meta.len(), age));
+                out.push(BlobInfo {
+                    id,
+                    size: meta.len(),
+                    age: file_age(&meta),
+                });
             }
         }
         out.sort();
@@ -237,6 +360,14 @@ impl BlobStore {
     fn location(&self, sha256: &str) -> PathBuf {
         location(&self.root, sha256)
     }
+}
+
+/// Since a file was last modified (0 for a time in the future).
+fn file_age(meta: &fs::Metadata) -> Duration {
+    meta.modified()
+        .ok()
+        .and_then(|t| t.elapsed().ok())
+        .unwrap_or_default()
 }
 
 /// Whether `id` is 64 lowercase hex digits.

@@ -28,6 +28,10 @@ pub enum StoreError {
     /// Bad input (nothing was written).
     #[error("invalid: {0}")]
     Invalid(String),
+    /// A stored blob's bytes are not the ones its name (their SHA-256) and size promise: a
+    /// corrupted or overwritten object in the blob store. Nothing was cached or returned.
+    #[error("blob integrity: {0}")]
+    BlobCorrupt(String),
 }
 
 impl StoreError {

@@ -4,6 +4,7 @@
 //! | file | holds |
 //! |---|---|
 //! | `blobs` | [`BlobStore`]: `blobs/ab/cdef…` by SHA-256, temp file + fsync + rename |
+//! | `s3` | blobs in an S3-compatible object store instead ([`BlobConfig`], [`BlobUrl`]) |
 //! | `crypto` | [`MasterKey`], XChaCha20-Poly1305 for messages at rest |
 //! | `assets` | uploaded and watermarked assets |
 //! | `keys` | each watermarked asset's message (encrypted) |
@@ -30,6 +31,7 @@ pub(crate) mod jobs;
 mod keys;
 mod lock;
 mod publish;
+pub mod s3;
 mod time;
 mod verifications;
 
@@ -40,7 +42,7 @@ pub use api_keys::{ApiKey, Scope, TOKEN_PREFIX};
 pub use assets::{Asset, AssetKind, GcReport, NewAsset};
 pub use attribution::{AttributionSummary, MAX_ATTRIBUTION_PAGE};
 pub use audit::{AuditEntry, AuditFilter, AuditRow, ChainReport, GENESIS_HASH, MAX_AUDIT_PAGE};
-pub use blobs::{BlobRef, BlobStore, PinnedBlob};
+pub use blobs::{BlobInfo, BlobRef, BlobStore, PinnedBlob};
 pub use crypto::{MASTER_KEY_ENV, MasterKey};
 pub use error::{Result, StoreError};
 pub use jobs::{
@@ -53,6 +55,7 @@ pub use time::normalize_timestamp;
 pub use verifications::NewVerification;
 
 pub use database::{Backend, Database};
+pub use s3::{BlobConfig, BlobUrl, S3Options, Secret};
 
 use serde::Serialize;
 use sqlx::AnyPool;
@@ -122,8 +125,26 @@ impl Store {
         database: &Database,
         master: MasterKey,
     ) -> Result<Store> {
+        Self::open_with_blobs(data_dir, database, &BlobConfig::Local, master).await
+    }
+
+    /// [`Store::open_with`] with the blobs where `blobs` says: `data_dir/blobs/`, or an
+    /// S3-compatible bucket (then `data_dir/blobs/` holds only staged uploads and the verified
+    /// read cache), which must answer (a LIST) before anything else is opened.
+    pub async fn open_with_blobs(
+        data_dir: &Path,
+        database: &Database,
+        blobs: &BlobConfig,
+        master: MasterKey,
+    ) -> Result<Store> {
         std::fs::create_dir_all(data_dir)?;
-        let blobs = BlobStore::open(data_dir.join(BLOB_DIR))?;
+        let blobs = BlobStore::open_with(data_dir.join(BLOB_DIR), blobs)?;
+        if blobs.is_remote() {
+            let b = blobs.clone();
+            tokio::task::spawn_blocking(move || b.check())
+                .await
+                .map_err(|e| StoreError::Io(std::io::Error::other(e)))??;
+        }
         sqlx::any::install_default_drivers();
         let pool = match database {
             Database::Sqlite(path) => {

@@ -91,6 +91,7 @@ impl Store {
             return Err(StoreError::invalid("parent_id is not the job's asset"));
         }
         self.validate_asset(&asset)?;
+        self.check_blobs(&asset).await?;
 
         let stored = assets::insert_in(&mut tx, &asset).await?;
         let seq: i64 = sqlx::query_scalar("SELECT seq FROM assets WHERE id = $1")

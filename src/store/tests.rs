@@ -36,10 +36,41 @@ async fn test_database(dir: &std::path::Path) -> Database {
     db
 }
 
+/// Where the store tests keep their blobs: `dir/blobs`, or — when `SPLATMARK_TEST_S3` names an
+/// S3-compatible test server (`http://KEY:SECRET@HOST:PORT/BUCKET`, as
+/// `scripts/s3-test-server.sh` starts one) — a key prefix of the test's own in its bucket,
+/// written into the folder like the database's URL. Multipart uploads start at
+/// [`TEST_MULTIPART_THRESHOLD`] there.
+const TEST_BLOBS_FILE: &str = "test-blobs.prefix";
+const TEST_MULTIPART_THRESHOLD: u64 = 1 << 20;
+
+fn test_blobs(dir: &std::path::Path) -> BlobConfig {
+    let Some(server) = s3_server() else {
+        return BlobConfig::Local;
+    };
+    let file = dir.join(TEST_BLOBS_FILE);
+    let prefix = std::fs::read_to_string(&file).unwrap_or_else(|_| {
+        let p = format!("t-{}", uuid::Uuid::new_v4().simple());
+        std::fs::write(&file, &p).expect("write the test blob prefix");
+        p
+    });
+    BlobConfig::test_server(&server, &prefix, TEST_MULTIPART_THRESHOLD).expect("SPLATMARK_TEST_S3")
+}
+
+fn s3_server() -> Option<String> {
+    std::env::var("SPLATMARK_TEST_S3")
+        .ok()
+        .filter(|s| !s.is_empty())
+}
+
+fn on_s3() -> bool {
+    s3_server().is_some()
+}
+
 /// Opens (or reopens) the test store of `dir`.
 async fn open_in(dir: &std::path::Path, key: MasterKey) -> Result<Store> {
     let db = test_database(dir).await;
-    Store::open_with(dir, &db, key).await
+    Store::open_with_blobs(dir, &db, &test_blobs(dir), key).await
 }
 
 fn on_postgres() -> bool {
@@ -340,13 +371,16 @@ async fn blob_commit_is_content_addressed_and_idempotent() {
     );
     assert_eq!(a.size, 12);
     let path = store.blobs().path(&a.sha256).expect("path");
+    // On S3 the local file is the verified cached copy.
+    let folder = if on_s3() { "blobs/cache" } else { "blobs" };
     assert_eq!(
         path,
         dir.path()
-            .join("blobs")
+            .join(folder)
             .join(&a.sha256[..2])
             .join(&a.sha256[2..])
     );
+    assert_eq!(std::fs::read(&path).expect("read"), b"hello splats");
     // The same bytes through a temp file: same id, one file, temp dir empty.
     let mut tmp = store.blobs().temp_file().expect("tmp");
     std::io::Write::write_all(&mut tmp, b"hello splats").expect("write");
@@ -362,14 +396,31 @@ async fn blob_commit_is_content_addressed_and_idempotent() {
     assert_ne!(other.sha256, a.sha256);
 }
 
-/// Sets a blob's modification time `age` in the past.
-fn age_blob(store: &Store, id: &str, age: Duration) {
-    std::fs::File::options()
-        .write(true)
-        .open(store.blobs().path(id).expect("blob"))
-        .expect("open")
-        .set_modified(std::time::SystemTime::now() - age)
-        .expect("set mtime");
+/// The garbage collector's age threshold on S3 in these tests: an object's `LastModified`
+/// cannot be set, so blobs get older than this by waiting ([`age_blobs`]).
+const S3_MIN_AGE: Duration = Duration::from_secs(2);
+
+/// The age threshold a test passes to the garbage collector: `local` on a folder,
+/// [`S3_MIN_AGE`] on S3.
+fn gc_min_age(local: Duration) -> Duration {
+    if on_s3() { S3_MIN_AGE } else { local }
+}
+
+/// Makes blobs `ids` `age` old: their files' modification times set back, or on S3 a wait past
+/// [`S3_MIN_AGE`] (every blob of the store ages then; `LastModified` has 1 s resolution).
+async fn age_blobs(store: &Store, ids: &[&String], age: Duration) {
+    if on_s3() {
+        tokio::time::sleep(S3_MIN_AGE + Duration::from_millis(1500)).await;
+        return;
+    }
+    for id in ids {
+        std::fs::File::options()
+            .write(true)
+            .open(store.blobs().path(id).expect("blob"))
+            .expect("open")
+            .set_modified(std::time::SystemTime::now() - age)
+            .expect("set mtime");
+    }
 }
 
 fn pinned(store: &Store, bytes: &[u8]) -> PinnedBlob {
@@ -423,16 +474,17 @@ async fn a_failed_insert_discards_its_blobs_but_not_anyone_elses() {
         .blobs()
         .path(&id)
         .expect("still there for the other upload");
-    age_blob(&store, &id, Duration::from_secs(7 * 24 * 3600));
-    assert_eq!(store.collect_garbage(LONG).await.expect("gc").removed, 0);
+    age_blobs(&store, &[&id], Duration::from_secs(7 * 24 * 3600)).await;
+    let min_age = gc_min_age(LONG);
+    assert_eq!(store.collect_garbage(min_age).await.expect("gc").removed, 0);
     drop(other);
-    assert_eq!(store.collect_garbage(LONG).await.expect("gc").removed, 1);
+    assert_eq!(store.collect_garbage(min_age).await.expect("gc").removed, 1);
 }
 
 #[tokio::test]
 async fn garbage_collection_removes_old_unreferenced_blobs_only() {
     let (dir, store) = setup().await;
-    let day = Duration::from_secs(24 * 3600);
+    let day = gc_min_age(Duration::from_secs(24 * 3600));
     let kept = original(&store).await;
     let cams = store.blobs().put_bytes(b"cameras").expect("blob");
     let mut with_cams = new_original(&store, b"scene with cameras");
@@ -444,9 +496,12 @@ async fn garbage_collection_removes_old_unreferenced_blobs_only() {
         .expect("insert");
     let orphan = store.blobs().put_bytes(b"a failed publish").expect("blob");
     let young = store.blobs().put_bytes(b"being published").expect("blob");
-    for id in [&kept.sha256, &cams.sha256, &orphan.sha256, &young.sha256] {
-        age_blob(&store, id, 2 * day);
-    }
+    age_blobs(
+        &store,
+        &[&kept.sha256, &cams.sha256, &orphan.sha256, &young.sha256],
+        2 * day,
+    )
+    .await;
     // Committing bytes that are already there makes the blob young again.
     assert_eq!(
         store.blobs().put_bytes(b"being published").expect("blob"),
@@ -543,6 +598,194 @@ async fn stale_temp_files_are_removed_at_open_and_fresh_ones_kept() {
     open_in(dir.path(), key).await.expect("reopen");
     assert!(!old.exists(), "stale temp file removed");
     assert!(young.exists(), "fresh temp file kept");
+}
+
+#[tokio::test]
+async fn a_blob_larger_than_the_multipart_threshold_round_trips() {
+    let (_dir, store) = setup().await;
+    let mut rng = crate::scene::synthetic::Rng::new(42);
+    // Two parts and a bit on S3 (8 MiB parts above the tests' 1 MiB threshold).
+    let n = 2 * s3::DEFAULT_PART_SIZE as usize + 12_345;
+    let big: Vec<u8> = (0..n.div_ceil(8))
+        .flat_map(|_| rng.next_u64().to_le_bytes())
+        .take(n)
+        .collect();
+    let blobs = store.blobs().clone();
+    let a = blobs.put_bytes(&big).expect("put");
+    assert_eq!(a.size, n as u64);
+    assert_eq!(
+        a.sha256,
+        hex::encode(<sha2::Sha256 as sha2::Digest>::digest(&big))
+    );
+    assert_eq!(blobs.size_of(&a.sha256).expect("size"), a.size);
+    assert!(blobs.read(&a.sha256).expect("read") == big);
+    if let Some(remote) = blobs.remote() {
+        // A multipart object's ETag is "MD5-OF-PART-MD5S-PARTS".
+        let (_, etag) = remote.meta(&a.sha256).expect("head").expect("stored");
+        let etag = etag.unwrap_or_default();
+        assert!(etag.trim_matches('"').ends_with("-3"), "{etag}");
+    }
+    // Again: the same blob, stored once.
+    assert_eq!(blobs.put_bytes(&big).expect("put again"), a);
+    let listed = blobs.list().expect("list");
+    assert_eq!(listed.iter().filter(|b| b.id == a.sha256).count(), 1);
+    assert_eq!(
+        listed.iter().find(|b| b.id == a.sha256).map(|b| b.size),
+        Some(a.size)
+    );
+}
+
+/// `SKIPPED:` for a test that needs the S3 test server.
+fn skip_without_s3(test: &str) -> bool {
+    if on_s3() {
+        return false;
+    }
+    eprintln!("SKIPPED: {test} needs an S3 server (SPLATMARK_TEST_S3; scripts/test.sh starts one)");
+    true
+}
+
+#[tokio::test]
+async fn a_corrupted_object_is_a_typed_error_and_never_cached() {
+    if skip_without_s3("a_corrupted_object_is_a_typed_error_and_never_cached") {
+        return;
+    }
+    let (dir, store) = setup().await;
+    let blobs = store.blobs().clone();
+    let truth = b"the true bytes of a scene".to_vec();
+    let a = blobs.put_bytes(&truth).expect("put");
+    let remote = blobs.remote().expect("on S3");
+    let cached = dir
+        .path()
+        .join("blobs/cache")
+        .join(&a.sha256[..2])
+        .join(&a.sha256[2..]);
+    // Behind the store's back: other bytes of the same size, then of another size.
+    for wrong in [truth.to_ascii_uppercase(), b"short".to_vec()] {
+        remote.put_raw(&a.sha256, wrong).expect("overwrite");
+        let e = blobs.path(&a.sha256).expect_err("corrupt");
+        assert!(matches!(e, StoreError::BlobCorrupt(_)), "{e}");
+        assert!(e.to_string().contains(&a.sha256), "{e}");
+        assert!(matches!(
+            blobs.read(&a.sha256),
+            Err(StoreError::BlobCorrupt(_))
+        ));
+        assert!(!cached.exists(), "nothing cached");
+        let staged = std::fs::read_dir(dir.path().join("blobs/tmp"))
+            .expect("tmp")
+            .count();
+        assert_eq!(staged, 0, "the download's temp file is gone");
+    }
+    // The true bytes back: read, verified and cached.
+    remote.put_raw(&a.sha256, truth.clone()).expect("restore");
+    assert_eq!(blobs.read(&a.sha256).expect("read"), truth);
+    assert_eq!(std::fs::read(&cached).expect("cached"), truth);
+    // A cached copy of the wrong size (a crash mid-write) is fetched again.
+    std::fs::write(&cached, b"trunc").expect("truncate");
+    assert_eq!(blobs.read(&a.sha256).expect("read"), truth);
+}
+
+#[tokio::test]
+async fn replicas_share_the_bucket_and_one_collector_serves_all() {
+    if skip_without_s3("replicas_share_the_bucket_and_one_collector_serves_all") {
+        return;
+    }
+    // Two stores on one database and one bucket prefix, each with its own data folder: two
+    // replicas.
+    let (dir1, dir2) = (
+        tempfile::tempdir().expect("tmp"),
+        tempfile::tempdir().expect("tmp"),
+    );
+    let key = MasterKey::generate();
+    let one = open_in(dir1.path(), key.clone()).await.expect("open");
+    let db = test_database(dir1.path()).await;
+    let two = Store::open_with_blobs(dir2.path(), &db, &test_blobs(dir1.path()), key)
+        .await
+        .expect("open the second replica");
+
+    // Uploaded through one, read (verified) through the other; referenced by an asset row.
+    let kept = one
+        .insert_asset(new_original(&one, b"shared scene"), entry("asset.upload"))
+        .await
+        .expect("insert");
+    assert_eq!(
+        two.blobs().read(&kept.sha256).expect("read"),
+        b"shared scene"
+    );
+    let orphan = one.blobs().put_bytes(b"a failed publish").expect("put");
+    let young = one.blobs().put_bytes(b"being published").expect("put");
+    assert_eq!(
+        two.blobs().read(&orphan.sha256).expect("read"),
+        b"a failed publish"
+    );
+    let remote = one.blobs().remote().expect("on S3");
+    let (before, _) = remote.meta(&young.sha256).expect("head").expect("stored");
+    age_blobs(&one, &[], S3_MIN_AGE).await;
+    // The other replica commits the same bytes again: the object is touched, young again.
+    assert_eq!(
+        two.blobs().put_bytes(b"being published").expect("put"),
+        young
+    );
+    let (after, _) = remote.meta(&young.sha256).expect("head").expect("stored");
+    assert!(after > before, "LastModified {before:?} → {after:?}");
+
+    let r = one.collect_garbage(S3_MIN_AGE).await.expect("gc");
+    assert_eq!((r.scanned, r.removed, r.bytes), (3, 1, orphan.size));
+    // Gone for both replicas, the other's cached copy included.
+    for s in [&one, &two] {
+        assert!(matches!(
+            s.blobs().path(&orphan.sha256),
+            Err(StoreError::NotFound)
+        ));
+    }
+    let cached2 = dir2
+        .path()
+        .join("blobs/cache")
+        .join(&orphan.sha256[..2])
+        .join(&orphan.sha256[2..]);
+    assert!(!cached2.exists());
+    for id in [&kept.sha256, &young.sha256] {
+        two.blobs().path(id).expect("kept");
+    }
+    // The second replica's collector finds nothing more to do.
+    assert_eq!(
+        two.collect_garbage(S3_MIN_AGE).await.expect("gc").removed,
+        0
+    );
+    assert!(one.verify_audit_chain().await.expect("chain").ok);
+}
+
+#[tokio::test]
+async fn s3_credentials_never_print() {
+    if skip_without_s3("s3_credentials_never_print") {
+        return;
+    }
+    let dir = tempfile::tempdir().expect("tmp");
+    let BlobConfig::S3 { url, mut options } = test_blobs(dir.path()) else {
+        unreachable!("on S3")
+    };
+    let real = options.secret_access_key.clone().expect("secret");
+    let store = open_in(dir.path(), MasterKey::generate())
+        .await
+        .expect("open");
+    store.blobs().put_bytes(b"x").expect("put");
+    let shown = format!("{store:?} {:?} {}", store.blobs(), store.blobs().describe());
+    assert!(!shown.contains(real.expose()), "{shown}");
+
+    // A wrong secret: refused at open, and no message repeats it.
+    let wrong = "wrong-secret-hunter2-0123456789";
+    options.secret_access_key = Some(Secret::new(wrong));
+    let bad = BlobConfig::S3 { url, options };
+    let b = BlobStore::open_with(dir.path().join("other"), &bad).expect("client");
+    let e = b.check().expect_err("wrong credentials are refused");
+    let db = test_database(dir.path()).await;
+    let e2 = Store::open_with_blobs(dir.path(), &db, &bad, MasterKey::generate())
+        .await
+        .expect_err("refused at open");
+    let shown = format!("{e} {e:?} {e2} {e2:?} {b:?} {bad:?}");
+    assert!(
+        !shown.contains(wrong) && !shown.contains(real.expose()),
+        "{shown}"
+    );
 }
 
 // ---- master key and keys at rest -----------------------------------------------------------

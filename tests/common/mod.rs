@@ -17,7 +17,7 @@ use splatmark::queue::JobSpec;
 use splatmark::scene::orbit::orbit_cameras;
 use splatmark::scene::synthetic::object_scene;
 use splatmark::scene::{Gaussians, write_ply};
-use splatmark::store::{Database, MasterKey};
+use splatmark::store::{BlobConfig, BlobStore, Database, MasterKey};
 
 /// A running server with its own data folder and an HTTP client.
 pub struct TestApp {
@@ -29,6 +29,9 @@ pub struct TestApp {
     pub admin: String,
     /// The database the server opened.
     pub database: Database,
+    /// The blob store the server opened (a folder, or a prefix of the test S3 bucket), opened
+    /// again beside it for looking behind its back.
+    pub blobs: BlobStore,
 }
 
 pub struct Keys {
@@ -59,11 +62,32 @@ pub fn test_database() -> Option<Database> {
     .unwrap()
 }
 
+/// The S3-compatible test server `SPLATMARK_TEST_S3` names
+/// (`http://ACCESS_KEY:SECRET@HOST:PORT/BUCKET`; `scripts/test.sh` starts one with
+/// `scripts/s3-test-server.sh` and runs the service suites against it), with a new key prefix
+/// of its own, or `None` — blobs in the data folder — when it names none.
+pub fn test_blobs() -> Option<BlobConfig> {
+    let server = std::env::var("SPLATMARK_TEST_S3")
+        .ok()
+        .filter(|s| !s.is_empty())?;
+    let prefix = format!("t-{}", uuid::Uuid::new_v4().simple());
+    Some(
+        BlobConfig::test_server(&server, &prefix, 1 << 20)
+            .expect("SPLATMARK_TEST_S3 is http://ACCESS_KEY:SECRET@HOST:PORT/BUCKET"),
+    )
+}
+
 pub fn config(dir: &Path) -> Config {
+    let (blob_url, s3) = match test_blobs() {
+        Some(BlobConfig::S3 { url, options }) => (Some(url), options),
+        _ => (None, Default::default()),
+    };
     Config {
         bind: "127.0.0.1:0".parse().unwrap(),
         data_dir: dir.join("data"),
         database_url: test_database(),
+        blob_url,
+        s3,
         workers: Some(1),
         device: splatmark::config::DevicePolicy::Cpu,
         ..Config::default()
@@ -96,6 +120,8 @@ impl TestApp {
             .expect("the first start writes an admin token")
             .trim()
             .to_string();
+        let blobs = BlobStore::open_with(cfg.data_dir.join("blobs"), &cfg.blobs())
+            .expect("the server's blob store");
         Self {
             base: format!("http://{}", app.addr),
             app: Some(app),
@@ -103,6 +129,25 @@ impl TestApp {
             dir,
             admin,
             database: cfg.database(),
+            blobs,
+        }
+    }
+
+    /// Every blob the server keeps: the files under its blob folder other than in-flight
+    /// temporaries, or on S3 the objects under its prefix (the local cache is not the store).
+    pub fn stored_blobs(&self) -> Vec<String> {
+        if self.blobs.is_remote() {
+            self.blobs
+                .list()
+                .expect("list the bucket")
+                .into_iter()
+                .map(|b| b.id)
+                .collect()
+        } else {
+            stored_blobs(&self.data())
+                .into_iter()
+                .map(|p| p.display().to_string())
+                .collect()
         }
     }
 
