@@ -73,20 +73,7 @@ async fn run(n: u32) -> Result<(), Box<dyn std::error::Error>> {
         )
         .await?;
     let message: Vec<bool> = (0..32).map(|i| i % 3 == 0).collect();
-    store
-        .enqueue(
-            NewJob {
-                asset_id: original.id,
-                owner: "bench".into(),
-                bits: 32,
-                message: message.clone(),
-                options: serde_json::json!({}),
-                idempotency_key: None,
-                max_attempts: 3,
-            },
-            AuditEntry::new("bench", "job.enqueue"),
-        )
-        .await?;
+    enqueue(&store, &original, &message).await?;
     let claimed = store
         .claim("bench", Duration::from_secs(600))
         .await?
@@ -112,6 +99,29 @@ async fn run(n: u32) -> Result<(), Box<dyn std::error::Error>> {
     Ok(())
 }
 
+/// Enqueues one job of `message` for `original`.
+async fn enqueue(
+    store: &Store,
+    original: &splatmark::store::Asset,
+    message: &[bool],
+) -> Result<(), splatmark::store::StoreError> {
+    store
+        .enqueue(
+            NewJob {
+                asset_id: original.id,
+                owner: "bench".into(),
+                bits: 32,
+                message: message.to_vec(),
+                options: serde_json::json!({}),
+                idempotency_key: None,
+                max_attempts: 3,
+            },
+            AuditEntry::new("bench", "job.enqueue"),
+        )
+        .await?;
+    Ok(())
+}
+
 /// Enqueues `jobs` jobs, then `claimers` tasks claim until the queue is empty: claims per
 /// second and the claim latency's median and 99th percentile.
 async fn claims(
@@ -122,20 +132,7 @@ async fn claims(
     claimers: usize,
 ) -> Result<(), Box<dyn std::error::Error>> {
     for _ in 0..jobs {
-        store
-            .enqueue(
-                NewJob {
-                    asset_id: original.id,
-                    owner: "bench".into(),
-                    bits: 32,
-                    message: message.to_vec(),
-                    options: serde_json::json!({}),
-                    idempotency_key: None,
-                    max_attempts: 3,
-                },
-                AuditEntry::new("bench", "job.enqueue"),
-            )
-            .await?;
+        enqueue(store, original, message).await?;
     }
     let t = Instant::now();
     let mut tasks = Vec::new();

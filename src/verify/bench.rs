@@ -637,13 +637,13 @@ mod tests {
     use crate::verify::eval::Row;
 
     #[test]
-    fn unseen_views_are_not_training_views_and_long_payloads_train_on_more() {
+    fn unseen_views_are_not_training_views_and_every_payload_trains_on_the_service_default() {
         let g = object_scene(200, 0, 3);
         let dir = PathBuf::from("/nonexistent");
         let scene = &shared_scenes()[0];
         for (opts, bits, trained, unseen_n) in [
             (QualityOptions::quick(dir.clone()), 32, 14, 4),
-            (QualityOptions::full(dir.clone()), 32, 21, 12),
+            (QualityOptions::full(dir.clone()), 32, 42, 12),
             (QualityOptions::full(dir.clone()), 48, 42, 12),
             (QualityOptions::full(dir.clone()), 64, 42, 12),
         ] {
