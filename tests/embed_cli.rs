@@ -57,6 +57,10 @@ fn embed_writes_scene_attribution_and_report_that_agree() {
     assert_eq!(v["message_hex"], "c0ffee42");
     assert_eq!(v["bits"], 32);
     assert_eq!(v["views"], 7, "8 orbit views, every 8th held out");
+    assert_eq!(
+        v["analysis_views"], 7,
+        "fewer than analysis_views: every one read"
+    );
     let n_out = v["output_gaussians"].as_u64().unwrap() as usize;
     let carriers = v["carriers"].as_u64().unwrap() as usize;
     assert!(carriers > 0);
@@ -474,4 +478,36 @@ fn explain_draws_where_the_message_lives_for_each_view() {
         "{}",
         String::from_utf8_lossy(&o.stderr)
     );
+}
+
+#[test]
+fn planning_and_calibration_read_a_subset_of_the_views_for_32_bit_payloads_only() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = scene(dir.path());
+    let config = dir.path().join("embed.json");
+    std::fs::write(&config, r#"{"analysis_views": 3}"#).unwrap();
+    for (bits, message, read) in [(32, "c0ffee42", 3), (48, "c0ffee42c0ff", 7)] {
+        let v = ok_json(
+            &bin()
+                .arg("embed")
+                .arg(&input)
+                .args(VIEWS)
+                .args([
+                    "--bits",
+                    &bits.to_string(),
+                    "--message",
+                    message,
+                    "--steps",
+                    "2",
+                ])
+                .arg("--config")
+                .arg(&config)
+                .arg("--out")
+                .arg(dir.path().join(format!("marked-{bits}.ply")))
+                .output()
+                .unwrap(),
+        );
+        assert_eq!(v["views"], 7);
+        assert_eq!(v["analysis_views"], read, "{bits} bits");
+    }
 }
