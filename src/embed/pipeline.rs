@@ -354,19 +354,15 @@ pub fn embed(
     };
     let pick = spread_views(cameras, cap);
     let analysis: Vec<Camera> = pick.iter().map(|&i| cameras[i].clone()).collect();
-    let analysis_targets: Vec<View> = if pick.len() == cameras.len() {
-        Vec::new()
+    // The reference reads every finetuning view, or the picked cameras at every scale.
+    let reference_cameras: Vec<&Camera> = if pick.len() == cameras.len() {
+        views.iter().map(|v| &v.camera).collect()
     } else {
         let per_scale = finetune_cameras.len();
+        let views = &views;
         (0..opts.view_scales.len())
-            .flat_map(|s| pick.iter().map(move |&i| s * per_scale + i))
-            .map(|k| views[k].clone())
+            .flat_map(|s| pick.iter().map(move |&i| &views[s * per_scale + i].camera))
             .collect()
-    };
-    let reference_views = if analysis_targets.is_empty() {
-        &views[..]
-    } else {
-        &analysis_targets[..]
     };
 
     report_phase(&mut progress, Phase::Plan)?;
@@ -409,7 +405,7 @@ pub fn embed(
     let reference = if opts.reference {
         Some(reference_logits(
             g,
-            reference_views,
+            reference_cameras,
             model,
             &ro,
             &opts.finetune.rasterizer,
@@ -508,20 +504,20 @@ pub fn embed(
     })
 }
 
-/// The asset reference of `original`: its logits over `views` as a dispute decodes them (each
-/// view rendered to 8 bits, decoded, the logits averaged), with `model`'s own reference, if any,
-/// left out.
-pub fn reference_logits(
+/// The asset reference of `original`: its logits through `cameras` as a dispute decodes them
+/// (each view rendered to 8 bits, decoded, the logits averaged), with `model`'s own reference,
+/// if any, left out.
+pub fn reference_logits<'a>(
     original: &Gaussians,
-    views: &[View],
+    cameras: impl IntoIterator<Item = &'a Camera>,
     model: &WatermarkModel,
     opts: &RenderOptions,
     rasterizer: &Rasterizer,
 ) -> Result<Vec<f32>, EmbedError> {
     let mut plain = model.clone();
     plain.reference = None;
-    Ok(super::finetune::views_logits(
-        original, views, &plain, opts, rasterizer,
+    Ok(super::finetune::cameras_logits(
+        original, cameras, &plain, opts, rasterizer,
     )?)
 }
 

@@ -81,13 +81,9 @@ impl BlobStore {
         fs::create_dir_all(&tmp)?;
         let day = std::time::Duration::from_secs(24 * 3600);
         for e in fs::read_dir(&tmp)?.flatten() {
-            let stale = e
-                .metadata()
-                .and_then(|m| m.modified())
-                .ok()
-                .and_then(|t| t.elapsed().ok())
-                .is_some_and(|age| age > day);
-            if stale && let Err(err) = fs::remove_file(e.path()) {
+            if modified_longer_ago(&e, day)
+                && let Err(err) = fs::remove_file(e.path())
+            {
                 tracing::warn!(path = %e.path().display(), %err, "could not remove a stale temp file");
             }
         }
@@ -368,6 +364,16 @@ fn file_age(meta: &fs::Metadata) -> Duration {
         .ok()
         .and_then(|t| t.elapsed().ok())
         .unwrap_or_default()
+}
+
+/// Whether directory entry `e` was last modified longer than `age` ago (`false` when its time
+/// cannot be read).
+pub(super) fn modified_longer_ago(e: &fs::DirEntry, age: std::time::Duration) -> bool {
+    e.metadata()
+        .and_then(|m| m.modified())
+        .ok()
+        .and_then(|t| t.elapsed().ok())
+        .is_some_and(|elapsed| elapsed > age)
 }
 
 /// Whether `id` is 64 lowercase hex digits.

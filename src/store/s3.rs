@@ -42,7 +42,7 @@ use object_store::{ObjectStore, ObjectStoreExt, PutPayload, WriteMultipart};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
-use super::blobs::{is_blob_id, location};
+use super::blobs::{is_blob_id, location, modified_longer_ago};
 use super::error::{Result, StoreError};
 
 /// Smallest part S3 accepts in a multipart upload (all but the last).
@@ -742,13 +742,7 @@ fn remove_older_than(dir: &Path, max_age: Duration) {
             continue;
         };
         for f in files.flatten() {
-            let old = f
-                .metadata()
-                .and_then(|m| m.modified())
-                .ok()
-                .and_then(|t| t.elapsed().ok())
-                .is_some_and(|age| age > max_age);
-            if old {
+            if modified_longer_ago(&f, max_age) {
                 let _ = fs::remove_file(f.path());
             }
         }

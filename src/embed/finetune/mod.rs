@@ -71,9 +71,9 @@ pub use losses::ssim;
 use losses::{Margin, as_saved, band_l1, from_planar, to_tensor, views_bce};
 pub use optim::ROUTE_CLIP;
 use optim::{Adam, RouteMomentum};
-pub(crate) use views::views_logits;
 use views::{Renderer, views_psnr};
 pub use views::{View, ViewsCheck, target_views};
+pub(crate) use views::{cameras_logits, views_logits};
 use visual::visual_loss;
 
 /// Why finetuning failed.

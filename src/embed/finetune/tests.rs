@@ -209,17 +209,28 @@ fn the_fidelity_bound_holds_the_training_views_and_colour_only_keeps_geometry() 
 fn a_reference_centres_the_original_on_its_own_views() {
     let (g, views, opts) = setup();
     let m = model(8);
-    let r = crate::embed::pipeline::reference_logits(&g, &views, &m, &opts, &Default::default())
-        .unwrap();
+    let r = crate::embed::pipeline::reference_logits(
+        &g,
+        views.iter().map(|v| &v.camera),
+        &m,
+        &opts,
+        &Default::default(),
+    )
+    .unwrap();
     assert_eq!(r.len(), 8);
     assert!(r.iter().any(|z| z.abs() > 1e-3), "{r:?}");
     let centred = m.clone().with_reference(r.clone());
     let z = views_logits(&g, &views, &centred, &opts, &Default::default()).unwrap();
     assert!(z.iter().all(|v| v.abs() < 1e-4), "{z:?}");
     // Measured through an already-centred model, the reference is still the plain one.
-    let again =
-        crate::embed::pipeline::reference_logits(&g, &views, &centred, &opts, &Default::default())
-            .unwrap();
+    let again = crate::embed::pipeline::reference_logits(
+        &g,
+        views.iter().map(|v| &v.camera),
+        &centred,
+        &opts,
+        &Default::default(),
+    )
+    .unwrap();
     assert_eq!(again, r);
 }
 

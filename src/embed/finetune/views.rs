@@ -67,10 +67,21 @@ pub(crate) fn views_logits(
     opts: &RenderOptions,
     rasterizer: &Rasterizer,
 ) -> Result<Vec<f32>, FinetuneError> {
-    let images = views
-        .iter()
-        .map(|v| {
-            let (w, h, image) = rasterizer.render_image(g, &v.camera, opts)?;
+    cameras_logits(g, views.iter().map(|v| &v.camera), model, opts, rasterizer)
+}
+
+/// [`views_logits`] through the cameras alone.
+pub(crate) fn cameras_logits<'a>(
+    g: &Gaussians,
+    cameras: impl IntoIterator<Item = &'a Camera>,
+    model: &WatermarkModel,
+    opts: &RenderOptions,
+    rasterizer: &Rasterizer,
+) -> Result<Vec<f32>, FinetuneError> {
+    let images = cameras
+        .into_iter()
+        .map(|c| {
+            let (w, h, image) = rasterizer.render_image(g, c, opts)?;
             Ok(render::to_rgb8(w, h, &image))
         })
         .collect::<Result<Vec<_>, RenderError>>()?;
