@@ -460,7 +460,7 @@ pub struct QualityArgs {
     /// Render side in pixels (orbit scenes and udon; lego and fern keep their fitted size).
     #[arg(long)]
     size: Option<u32>,
-    /// Orbit views to embed through (default 24, the CLI's; every 8th held out); the unseen
+    /// Orbit views to embed through (default 48, the CLI's; every 8th held out); the unseen
     /// views stay the same.
     #[arg(long)]
     train_views: Option<usize>,
@@ -470,6 +470,10 @@ pub struct QualityArgs {
     /// Hold out every N-th of those views, as `embed --holdout-every` does (default 8).
     #[arg(long)]
     holdout_every: Option<usize>,
+    /// For a scene with its own cameras (udon): also embed through N orbit views around the
+    /// splat (at --size, the training elevations); its held-out cameras stay the unseen views.
+    #[arg(long)]
+    camera_orbit: Option<usize>,
     /// Azimuth of the first unseen view in degrees (default 7.5: half a step of a 24-view
     /// orbit).
     #[arg(long, allow_hyphen_values = true)]
@@ -523,6 +527,9 @@ pub fn bench_cmd(c: &BenchCommand, progress: super::progress::ProgressMode) -> R
     }
     if let Some(n) = a.holdout_every {
         o.holdout_every = n;
+    }
+    if let Some(n) = a.camera_orbit {
+        o.camera_orbit = n;
     }
     if let Some(d) = a.eval_azimuth_offset {
         anyhow::ensure!(d.is_finite(), "--eval-azimuth-offset must be finite");

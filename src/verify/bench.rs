@@ -93,6 +93,9 @@ pub struct QualityOptions {
     pub holdout_every: usize,
     /// Cameras of a scene's own set held out for evaluation: every n-th.
     pub holdout_every_cameras: usize,
+    /// Orbit views around the splat added to a scene's own training cameras (0: its cameras
+    /// alone); the held-out cameras stay the unseen views.
+    pub camera_orbit: usize,
     /// Unseen orbit views.
     pub eval_views: usize,
     pub eval_elevations: Vec<f32>,
@@ -134,6 +137,7 @@ impl QualityOptions {
             train_elevations: OrbitOptions::default().elevations_deg,
             holdout_every: 8,
             holdout_every_cameras: 4,
+            camera_orbit: 0,
             eval_views: 12,
             eval_elevations: vec![0.0, 22.0, 50.0],
             eval_azimuth_offset_deg: 0.5 * 360.0 / 24.0,
@@ -308,7 +312,19 @@ pub fn views(
             resize_all(cams, None, Some(opts.size))
         };
         let every = opts.holdout_every_cameras.max(2);
-        let (train, held) = split_views(&cams, every);
+        let (mut train, held) = split_views(&cams, every);
+        if opts.camera_orbit > 0 {
+            train.extend(orbit_cameras(
+                g,
+                &OrbitOptions {
+                    count: opts.camera_orbit,
+                    elevations_deg: opts.train_elevations.clone(),
+                    width: opts.size,
+                    height: opts.size,
+                    ..OrbitOptions::default()
+                },
+            )?);
+        }
         return Ok((train, held));
     }
     let train_orbit = OrbitOptions {
@@ -655,6 +671,46 @@ mod tests {
             );
             assert_unseen(&train, &unseen);
         }
+    }
+
+    #[test]
+    fn orbit_views_join_a_scenes_own_training_cameras_and_its_held_out_ones_stay_unseen() {
+        let g = object_scene(200, 0, 3);
+        let dir = tempfile::tempdir().expect("tempdir");
+        let cams: Vec<String> = (0..8)
+            .map(|i| {
+                format!(
+                    r#"{{"id": {i}, "img_name": "c{i}", "width": 64, "height": 48,
+                    "position": [{x}, 0.0, -5.0],
+                    "rotation": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "fx": 60.0, "fy": 60.0}}"#,
+                    x = 0.2 * i as f32
+                )
+            })
+            .collect();
+        std::fs::write(
+            dir.path().join("cameras.json"),
+            format!("[{}]", cams.join(",")),
+        )
+        .unwrap();
+        let scene = BenchScene {
+            name: "own".into(),
+            file: "own.ply".into(),
+            cameras: Some("cameras.json".into()),
+        };
+        let mut opts = QualityOptions::full(dir.path().to_path_buf());
+        opts.size = 64;
+        let (train, held) = views(&scene, &g, &opts, 32).unwrap();
+        assert_eq!((train.len(), held.len()), (6, 2));
+        opts.camera_orbit = 5;
+        let (with_orbit, held_too) = views(&scene, &g, &opts, 32).unwrap();
+        assert_eq!(held_too, held, "the unseen views are the held-out cameras");
+        assert_eq!(with_orbit.len(), 11);
+        assert_eq!(with_orbit[..6], train[..], "the scene's own cameras first");
+        assert!(
+            with_orbit[6..]
+                .iter()
+                .all(|c| c.width == 64 && c.height == 64)
+        );
     }
 
     fn assert_unseen(train: &[Camera], unseen: &[Camera]) {

@@ -52,6 +52,7 @@ use serde::{Deserialize, Serialize};
 
 use super::mask::Masks;
 use crate::attack::diff::{DiffAttack, DiffAttackError, EotRng, random_composition};
+use crate::attack::model::ModelAttack;
 use crate::decoder::WatermarkModel;
 use crate::render::RenderError;
 use crate::scene::Gaussians;
@@ -251,6 +252,15 @@ pub fn finetune(
             cfg.wm_margin, cfg.wm_sharpness
         )));
     }
+    if !((0.0..=1.0).contains(&cfg.eot_noise_probability)
+        && cfg.eot_noise_std.is_finite()
+        && cfg.eot_noise_std >= 0.0)
+    {
+        return Err(FinetuneError::Invalid(format!(
+            "eot_noise_probability must be in [0, 1] and eot_noise_std finite and ≥ 0, got {} and {}",
+            cfg.eot_noise_probability, cfg.eot_noise_std
+        )));
+    }
     for (index, v) in views.iter().enumerate() {
         let expected = (v.camera.width * v.camera.height) as usize;
         if v.target.len() != expected {
@@ -362,14 +372,30 @@ pub fn finetune(
             let f = rng.uniform() * f64::from(cfg.eot_remove_max.clamp(0.0, 1.0));
             (0..g.len()).map(|_| rng.uniform() < f).collect()
         });
-        let wm_renders = match &removed {
-            Some(r) => Some(
+        // The model attack "parameter noise" (drawn only when enabled, likewise).
+        let noised: Option<Gaussians> = (cfg.eot_noise_probability > 0.0
+            && rng.uniform() < p_attack * f64::from(cfg.eot_noise_probability))
+        .then(|| {
+            let attack = ModelAttack::Noise {
+                sigma: cfg.eot_noise_std.sqrt(),
+                seed: rng.next_u64(),
+            };
+            attack.apply(&g).expect("σ validated above")
+        });
+        let wm_renders = match (&noised, &removed) {
+            (Some(n), r) => Some(
+                picked
+                    .iter()
+                    .map(|&v| renderer.rasterise(n, v, r.as_deref()))
+                    .collect::<Result<Vec<_>, _>>()?,
+            ),
+            (None, Some(r)) => Some(
                 picked
                     .iter()
                     .map(|&v| renderer.render_without(&g, v, r))
                     .collect::<Result<Vec<_>, _>>()?,
             ),
-            None => None,
+            (None, None) => None,
         };
         let wm_frames = wm_renders.as_ref().unwrap_or(&renders);
         let attack = match attack {

@@ -433,6 +433,19 @@ fn bad_inputs_are_typed_errors() {
         }),
         Err(FinetuneError::MaskSize { .. })
     ));
+    for (p, std) in [(1.5, 0.01), (0.5, -0.01), (0.5, f32::NAN)] {
+        let cfg = FinetuneConfig {
+            eot_noise_probability: p,
+            eot_noise_std: std,
+            ..config(1)
+        };
+        assert!(matches!(
+            finetune(&g, &mk, &views, &m, &message(), &cfg, |_| {
+                ControlFlow::Continue(())
+            }),
+            Err(FinetuneError::Invalid(_))
+        ));
+    }
 }
 
 #[test]
@@ -788,4 +801,62 @@ fn removing_gaussians_reads_alike_from_a_replay_and_from_the_rasterizer() {
         }
     }
     assert!(reached > 100);
+}
+
+#[test]
+fn a_noisy_copy_of_the_scene_is_rasterised_even_where_views_are_replayed() {
+    let (g, views, opts) = setup();
+    let noisy = crate::attack::model::ModelAttack::Noise {
+        sigma: 0.1,
+        seed: 3,
+    }
+    .apply(&g)
+    .unwrap();
+    let removed: Vec<bool> = (0..g.len()).map(|i| i % 4 == 1).collect();
+    let mut replayed = Renderer::new(&views, &opts, true, Rasterizer::Cpu);
+    for (v, view) in views.iter().enumerate() {
+        let clean = replayed.render(&g, v).unwrap();
+        assert!(matches!(clean, Frame::Replayed { .. }));
+        let f = replayed.rasterise(&noisy, v, None).unwrap();
+        let want = render::render(&noisy, &view.camera, &opts).unwrap();
+        assert_eq!(
+            f.image(),
+            &want.image[..],
+            "view {v}: the noisy scene's render"
+        );
+        let moved = f
+            .image()
+            .iter()
+            .zip(clean.image())
+            .filter(|(p, q)| (0..3).any(|c| (p[c] - q[c]).abs() > 1e-3))
+            .count();
+        assert!(moved > 20, "view {v}: the noise moves {moved} pixels");
+        // Its gradient is the rasterizer's at the noisy parameters; removed Gaussians get none.
+        let d: Vec<[f32; 3]> = (0..f.image().len())
+            .map(|i| [(i % 5) as f32 - 2.0, 1.0, -0.5])
+            .collect();
+        let got = replayed
+            .backward_each(&g, &f, &[&d])
+            .unwrap()
+            .pop()
+            .unwrap();
+        let exp = render::backward(&noisy, &want, &d).unwrap().params;
+        assert_eq!(got.sh_dc, exp.sh_dc);
+        assert_eq!(got.means, exp.means);
+        let m = replayed.rasterise(&noisy, v, Some(&removed)).unwrap();
+        let gm = replayed
+            .backward_each(&g, &m, &[&d])
+            .unwrap()
+            .pop()
+            .unwrap();
+        for (i, x) in gm.sh_dc.iter().enumerate() {
+            if removed[i] {
+                assert_eq!(*x, [0.0; 3], "view {v}: removed Gaussian {i}");
+            }
+        }
+        assert!(matches!(
+            replayed.rasterise(&noisy, v, Some(&removed[1..])),
+            Err(RenderError::BadScene(_))
+        ));
+    }
 }

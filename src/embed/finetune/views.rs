@@ -250,14 +250,48 @@ impl<'a> Renderer<'a> {
             )));
         }
         let mut masked = g.clone();
-        for (o, &r) in masked.opacity_logits.iter_mut().zip(removed) {
-            if r {
-                // α = sigmoid(−40) ≈ 4e-18, far below the 1/255 a Gaussian needs to be drawn.
-                *o = -40.0;
-            }
-        }
+        make_transparent(&mut masked, removed);
         // No replay of view `v` exists (or may be recorded): this rasterises.
         let frame = self.render(&masked, v)?;
+        Ok(Frame::Masked {
+            frame: Box::new(frame),
+            scene: Box::new(masked),
+        })
+    }
+
+    /// View `v` of a perturbed copy `scene` of the finetuned scene (same Gaussians, moved),
+    /// rasterised whatever the replays (they hold the unperturbed geometry), with the
+    /// Gaussians marked in `removed` made transparent. Back-propagating through the frame
+    /// gives ∂L/∂θ at the perturbed parameters.
+    pub fn rasterise(
+        &mut self,
+        scene: &Gaussians,
+        v: usize,
+        removed: Option<&[bool]>,
+    ) -> Result<Frame, RenderError> {
+        let mut masked = scene.clone();
+        if let Some(removed) = removed {
+            if removed.len() != scene.len() {
+                return Err(RenderError::BadScene(format!(
+                    "a removal mask of {} Gaussians for a scene of {}",
+                    removed.len(),
+                    scene.len()
+                )));
+            }
+            make_transparent(&mut masked, removed);
+        }
+        let frame = match &self.rasterizer {
+            Rasterizer::Gpu(gpu) => Frame::Gpu(Box::new(gpu.render(
+                &masked,
+                &self.views[v].camera,
+                self.opts,
+            )?)),
+            Rasterizer::Cpu => Frame::Raster(Box::new(render::render(
+                &masked,
+                &self.views[v].camera,
+                self.opts,
+            )?)),
+        };
         Ok(Frame::Masked {
             frame: Box::new(frame),
             scene: Box::new(masked),
@@ -295,6 +329,16 @@ impl<'a> Renderer<'a> {
                 .backward_each(g, d_images),
             Frame::Removed { replay, .. } => replay.backward_each(g, d_images),
             Frame::Masked { frame, scene } => self.backward_each(scene, frame, d_images),
+        }
+    }
+}
+
+/// Makes the Gaussians marked in `removed` transparent: α = sigmoid(−40) ≈ 4e-18, far below
+/// the 1/255 a Gaussian needs to be drawn.
+fn make_transparent(g: &mut Gaussians, removed: &[bool]) {
+    for (o, &r) in g.opacity_logits.iter_mut().zip(removed) {
+        if r {
+            *o = -40.0;
         }
     }
 }
