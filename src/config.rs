@@ -355,6 +355,7 @@ impl Config {
             self.s3.multipart_threshold
         );
         env!("SPLATMARK_S3_PART_SIZE", self.s3.part_size);
+        env!("SPLATMARK_S3_CACHE_MAX_BYTES", self.s3.cache_max_bytes);
         env!("SPLATMARK_ROLE", self.role);
         env!("SPLATMARK_WORKERS", some self.workers);
         if let Some(v) = get("SPLATMARK_DEVICE") {
@@ -558,10 +559,12 @@ mod tests {
             .with_env(env(&[
                 ("SPLATMARK_BLOB_URL", "s3://other-bucket"),
                 ("SPLATMARK_S3_PART_SIZE", "6291456"),
+                ("SPLATMARK_S3_CACHE_MAX_BYTES", "1073741824"),
             ]))
             .unwrap();
         assert_eq!(c.blob_url.as_ref().unwrap().bucket(), "other-bucket");
         assert_eq!(c.s3.part_size, 6 << 20);
+        assert_eq!(c.s3.cache_max_bytes, 1 << 30);
         let e = Config::default()
             .with_env(env(&[(
                 "SPLATMARK_BLOB_URL",

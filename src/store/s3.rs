@@ -12,8 +12,11 @@
 //!   A cache hit is checked cheaply: a HEAD says the object still exists (a blob the garbage
 //!   collector of another replica removed is `NotFound` here too, and its cache copy dropped)
 //!   and the cached file must have its size (a copy cut short by a crash is fetched again;
-//!   one altered in place at its size is not detected). The cache is not bounded by size:
-//!   files not used for a day are removed at start and by each garbage collection.
+//!   one altered in place at its size is not detected). Files not used for a day are removed
+//!   at start and by each garbage collection, and the cache is bounded by size
+//!   (`s3.cache_max_bytes`, 10 GiB by default): a download that takes it past the bound evicts
+//!   the least recently used copies down to 90 % of it — except those used in the last
+//!   [`CACHE_GRACE`], whose paths a reader may be about to open.
 //! - **Age for the garbage collector** is the object's `LastModified`. Committing bytes that are
 //!   already stored must make the blob young again (the collector's age rule protects a blob
 //!   whose asset row is about to be written): S3 cannot set a modification time, so the object
@@ -33,6 +36,7 @@ use std::fs::{self, File};
 use std::io::{self, Read, Write};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
 
 use futures_util::StreamExt;
@@ -51,6 +55,10 @@ pub const MIN_PART_SIZE: u64 = 5 << 20;
 pub const DEFAULT_MULTIPART_THRESHOLD: u64 = 16 << 20;
 /// Default part size of a multipart upload.
 pub const DEFAULT_PART_SIZE: u64 = 8 << 20;
+/// Default bound of the local read cache, bytes.
+pub const DEFAULT_CACHE_MAX_BYTES: u64 = 10 << 30;
+/// Cached copies used more recently than this are never evicted by the size bound.
+pub const CACHE_GRACE: Duration = Duration::from_secs(60);
 
 /// A bucket and an optional key prefix: `s3://BUCKET/optional/prefix`.
 #[derive(Clone, PartialEq, Eq)]
@@ -215,6 +223,9 @@ pub struct S3Options {
     pub multipart_threshold: u64,
     /// Bytes per part of a multipart upload (at least 5 MiB, S3's minimum).
     pub part_size: u64,
+    /// Bound of the local read cache in bytes (least recently used copies go first; 0: no
+    /// bound, only the one-day age rule).
+    pub cache_max_bytes: u64,
 }
 
 impl Default for S3Options {
@@ -227,6 +238,7 @@ impl Default for S3Options {
             allow_http: None,
             multipart_threshold: DEFAULT_MULTIPART_THRESHOLD,
             part_size: DEFAULT_PART_SIZE,
+            cache_max_bytes: DEFAULT_CACHE_MAX_BYTES,
         }
     }
 }
@@ -297,6 +309,9 @@ pub(crate) struct S3Blobs {
     /// `blobs/tmp` (downloads) and `blobs/cache`.
     tmp: PathBuf,
     cache: PathBuf,
+    cache_max_bytes: u64,
+    /// Bytes in `cache` (recounted by every pruning; downloads add theirs).
+    cache_bytes: AtomicU64,
 }
 
 impl fmt::Debug for S3Blobs {
@@ -375,7 +390,11 @@ impl S3Blobs {
         let tmp = root.join("tmp");
         let cache = root.join("cache");
         fs::create_dir_all(&cache)?;
-        remove_older_than(&cache, Duration::from_secs(24 * 3600));
+        let cached = prune(
+            &cache,
+            Duration::from_secs(24 * 3600),
+            options.cache_max_bytes,
+        );
         Ok(S3Blobs {
             store: Arc::new(store),
             url: url.clone(),
@@ -387,6 +406,8 @@ impl S3Blobs {
             part_size,
             tmp,
             cache,
+            cache_max_bytes: options.cache_max_bytes,
+            cache_bytes: AtomicU64::new(cached),
         })
     }
 
@@ -597,6 +618,10 @@ impl S3Blobs {
         let dir = cached.parent().unwrap_or(&self.cache);
         fs::create_dir_all(dir)?;
         tmp.persist(&cached).map_err(|e| e.error)?;
+        let total = self.cache_bytes.fetch_add(size, Ordering::Relaxed) + size;
+        if self.cache_max_bytes > 0 && total > self.cache_max_bytes {
+            self.prune_cache(Duration::from_secs(24 * 3600));
+        }
         Ok(cached)
     }
 
@@ -666,9 +691,11 @@ impl S3Blobs {
         }
     }
 
-    /// Removes cached copies older than `max_age` (a reader holding one open keeps reading it).
+    /// Removes cached copies not used for `max_age`, then the least recently used ones past the
+    /// size bound (a reader holding one open keeps reading it).
     pub(crate) fn prune_cache(&self, max_age: Duration) {
-        remove_older_than(&self.cache, max_age);
+        let left = prune(&self.cache, max_age, self.cache_max_bytes);
+        self.cache_bytes.store(left, Ordering::Relaxed);
     }
 
     /// Writes `bytes` under blob `sha256`'s key as they are (for tests that corrupt objects).
@@ -735,8 +762,15 @@ fn is_loopback_http(endpoint: &str) -> bool {
 }
 
 /// Removes the files under `dir` (two levels: `ab/cdef…`) modified longer than `max_age` ago.
-fn remove_older_than(dir: &Path, max_age: Duration) {
-    let Ok(heads) = fs::read_dir(dir) else { return };
+/// Prunes the cache folder `dir` (`ab/cdef…` files): removes the files not modified for
+/// `max_age`, then — when `max_bytes` > 0 and the rest exceeds it — the least recently
+/// modified ones down to 90 % of `max_bytes`, sparing those modified within [`CACHE_GRACE`].
+/// Returns the bytes left.
+fn prune(dir: &Path, max_age: Duration, max_bytes: u64) -> u64 {
+    let mut kept: Vec<(std::time::SystemTime, u64, PathBuf)> = Vec::new();
+    let Ok(heads) = fs::read_dir(dir) else {
+        return 0;
+    };
     for head in heads.flatten() {
         let Ok(files) = fs::read_dir(head.path()) else {
             continue;
@@ -744,14 +778,77 @@ fn remove_older_than(dir: &Path, max_age: Duration) {
         for f in files.flatten() {
             if modified_longer_ago(&f, max_age) {
                 let _ = fs::remove_file(f.path());
+                continue;
+            }
+            if let Ok(m) = f.metadata()
+                && m.is_file()
+            {
+                let when = m.modified().unwrap_or(std::time::SystemTime::UNIX_EPOCH);
+                kept.push((when, m.len(), f.path()));
             }
         }
     }
+    let mut total: u64 = kept.iter().map(|k| k.1).sum();
+    if max_bytes == 0 || total <= max_bytes {
+        return total;
+    }
+    let target = max_bytes / 10 * 9;
+    kept.sort();
+    for (when, size, path) in kept {
+        if total <= target {
+            break;
+        }
+        let recent = when.elapsed().map_or(true, |age| age < CACHE_GRACE);
+        if !recent && fs::remove_file(&path).is_ok() {
+            total -= size;
+        }
+    }
+    total
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_cache_keeps_the_recently_used_copies_within_its_bound() {
+        let dir = tempfile::tempdir().expect("tmp");
+        let now = std::time::SystemTime::now();
+        let hours = |h: u64| now - Duration::from_secs(h * 3600);
+        // name, bytes, last used
+        let files = [
+            ("aa/old", 100, hours(30)),
+            ("ab/lru", 400, hours(5)),
+            ("ac/mid", 300, hours(3)),
+            ("ad/new", 200, hours(1)),
+            ("ae/now", 500, now),
+        ];
+        for (name, size, when) in files {
+            let p = dir.path().join(name);
+            fs::create_dir_all(p.parent().unwrap()).unwrap();
+            fs::write(&p, vec![7u8; size]).unwrap();
+            File::options()
+                .write(true)
+                .open(&p)
+                .unwrap()
+                .set_modified(when)
+                .unwrap();
+        }
+        let day = Duration::from_secs(24 * 3600);
+        let exists = |n: &str| dir.path().join(n).exists();
+        // Unbounded: only the age rule.
+        assert_eq!(prune(dir.path(), day, 0), 1400);
+        assert!(!exists("aa/old"));
+        // Within the bound: nothing goes.
+        assert_eq!(prune(dir.path(), day, 1400), 1400);
+        // Past it: the least recently used go until ≤ 90 % of the bound (1 000 → 900).
+        assert_eq!(prune(dir.path(), day, 1000), 700);
+        assert!(!exists("ab/lru") && !exists("ac/mid"));
+        assert!(exists("ad/new") && exists("ae/now"));
+        // A copy used within the grace period stays even past the bound.
+        assert_eq!(prune(dir.path(), day, 100), 500);
+        assert!(exists("ae/now") && !exists("ad/new"));
+    }
 
     #[test]
     fn blob_urls_parse_and_refuse_credentials() {

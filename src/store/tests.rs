@@ -685,6 +685,46 @@ async fn a_corrupted_object_is_a_typed_error_and_never_cached() {
 }
 
 #[tokio::test]
+async fn the_read_cache_stays_within_its_bound_and_evicted_blobs_read_again() {
+    if skip_without_s3("the_read_cache_stays_within_its_bound_and_evicted_blobs_read_again") {
+        return;
+    }
+    let dir = tempfile::tempdir().expect("tmp");
+    let BlobConfig::S3 { url, mut options } = test_blobs(dir.path()) else {
+        unreachable!("on S3")
+    };
+    let (a_bytes, b_bytes) = (vec![1u8; 3000], vec![2u8; 4000]);
+    options.cache_max_bytes = 6000;
+    let config = BlobConfig::S3 { url, options };
+    tokio::task::spawn_blocking(move || {
+        let blobs = BlobStore::open_with(dir.path().join("blobs"), &config).expect("open");
+        let a = blobs.put_bytes(&a_bytes).expect("put a");
+        let b = blobs.put_bytes(&b_bytes).expect("put b");
+        let cached = |id: &str| dir.path().join("blobs/cache").join(&id[..2]).join(&id[2..]);
+        assert_eq!(blobs.read(&a.sha256).expect("read a"), a_bytes);
+        assert!(cached(&a.sha256).exists());
+        // a was last used two hours ago; reading b takes the cache past 6 000 bytes.
+        std::fs::File::options()
+            .write(true)
+            .open(cached(&a.sha256))
+            .expect("cached a")
+            .set_modified(std::time::SystemTime::now() - std::time::Duration::from_secs(7200))
+            .expect("age");
+        assert_eq!(blobs.read(&b.sha256).expect("read b"), b_bytes);
+        assert!(
+            !cached(&a.sha256).exists(),
+            "the least recently used copy went"
+        );
+        assert!(cached(&b.sha256).exists(), "the one just read stays");
+        // An evicted blob is fetched and verified again.
+        assert_eq!(blobs.read(&a.sha256).expect("read a again"), a_bytes);
+        assert!(cached(&a.sha256).exists());
+    })
+    .await
+    .expect("blocking");
+}
+
+#[tokio::test]
 async fn replicas_share_the_bucket_and_one_collector_serves_all() {
     if skip_without_s3("replicas_share_the_bucket_and_one_collector_serves_all") {
         return;
