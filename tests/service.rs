@@ -928,3 +928,115 @@ async fn verifications_and_bad_keys_are_rate_limited_with_retry_after() {
     assert_eq!(r.status(), StatusCode::OK);
     t.stop().await;
 }
+
+/// A TCP relay the test can cut: every connection to `addr` is piped to `upstream` while it is
+/// open; cutting it drops the live connections and refuses new ones.
+struct Relay {
+    addr: std::net::SocketAddr,
+    open: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    pipes: std::sync::Arc<std::sync::Mutex<Vec<tokio::task::JoinHandle<()>>>>,
+    accept: tokio::task::JoinHandle<()>,
+}
+
+impl Relay {
+    async fn start(upstream: String) -> Self {
+        use std::sync::atomic::Ordering;
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let addr = listener.local_addr().unwrap();
+        let open = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(true));
+        let pipes = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+        let (o, p) = (open.clone(), pipes.clone());
+        let accept = tokio::spawn(async move {
+            while let Ok((mut down, _)) = listener.accept().await {
+                if !o.load(Ordering::SeqCst) {
+                    continue; // dropped: the connection is reset
+                }
+                let upstream = upstream.clone();
+                p.lock().unwrap().push(tokio::spawn(async move {
+                    if let Ok(mut up) = tokio::net::TcpStream::connect(&upstream).await {
+                        let _ = tokio::io::copy_bidirectional(&mut down, &mut up).await;
+                    }
+                }));
+            }
+        });
+        Relay {
+            addr,
+            open,
+            pipes,
+            accept,
+        }
+    }
+
+    fn set_open(&self, open: bool) {
+        self.open.store(open, std::sync::atomic::Ordering::SeqCst);
+        if !open {
+            for p in self.pipes.lock().unwrap().drain(..) {
+                p.abort();
+            }
+        }
+    }
+}
+
+impl Drop for Relay {
+    fn drop(&mut self) {
+        self.set_open(false);
+        self.accept.abort();
+    }
+}
+
+#[tokio::test]
+async fn readiness_fails_while_the_blob_store_does_not_answer_and_names_no_secret() {
+    let Some(splatmark::store::BlobConfig::S3 { options, .. }) = common::test_blobs() else {
+        eprintln!(
+            "SKIPPED: readiness with an unreachable blob store needs an S3 server \
+             (SPLATMARK_TEST_S3; scripts/test.sh starts one)"
+        );
+        return;
+    };
+    let endpoint = options
+        .endpoint
+        .clone()
+        .expect("the test server's endpoint");
+    let secret = options
+        .secret_access_key
+        .as_ref()
+        .expect("the test server's secret")
+        .expose()
+        .to_owned();
+    let upstream = endpoint.trim_start_matches("http://").to_owned();
+    let relay = Relay::start(upstream).await;
+    let mut t = TestApp::start_with(|c| {
+        c.s3.endpoint = Some(format!("http://{}", relay.addr));
+    })
+    .await;
+    let ready = |t: &TestApp| {
+        let (client, url) = (t.client.clone(), t.url("/readyz"));
+        async move {
+            let r = client.get(url).send().await.unwrap();
+            (r.status(), r.text().await.unwrap())
+        }
+    };
+    assert_eq!(ready(&t).await.0, StatusCode::OK);
+
+    relay.set_open(false);
+    // The probe answers (its own limit is 5 s; a hang would be a failure, not a wait).
+    let (status, body) = tokio::time::timeout(Duration::from_secs(120), ready(&t))
+        .await
+        .expect("/readyz answers while the blob store does not");
+    assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE, "{body}");
+    assert!(body.contains("blob store"), "{body}");
+    assert!(!body.contains(&secret), "the secret in {body}");
+
+    // Back: ready again (the client's retries reach the store once it answers).
+    relay.set_open(true);
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let (status, body) = ready(&t).await;
+        if status == StatusCode::OK {
+            break;
+        }
+        assert!(Instant::now() < deadline, "still not ready: {body}");
+        tokio::time::sleep(Duration::from_millis(500)).await;
+    }
+    t.stop().await;
+}
