@@ -392,7 +392,7 @@ impl S3Blobs {
         fs::create_dir_all(&cache)?;
         let cached = prune(
             &cache,
-            Duration::from_secs(24 * 3600),
+            super::assets::CACHE_MAX_AGE,
             options.cache_max_bytes,
         );
         Ok(S3Blobs {
@@ -620,7 +620,7 @@ impl S3Blobs {
         tmp.persist(&cached).map_err(|e| e.error)?;
         let total = self.cache_bytes.fetch_add(size, Ordering::Relaxed) + size;
         if self.cache_max_bytes > 0 && total > self.cache_max_bytes {
-            self.prune_cache(Duration::from_secs(24 * 3600));
+            self.prune_cache(super::assets::CACHE_MAX_AGE);
         }
         Ok(cached)
     }
