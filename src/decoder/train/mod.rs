@@ -52,6 +52,7 @@
 //! [`random_composition`]: crate::attack::diff::random_composition
 //! [`EotConfig`]: crate::attack::diff::EotConfig
 //! [`Whitening`]: super::model::Whitening
+//! [`HiddenEncoder`]: super::model::HiddenEncoder
 
 mod checkpoint;
 mod config;
