@@ -454,10 +454,10 @@ async fn a_real_scene_is_detected_on_views_the_job_never_saw() {
         return;
     };
     // The service's default false-positive rate, 1e-6 (30 of 32 bits): every run embeds a
-    // fresh random payload (the key's mask). Trained on 8 views at 128² the held-out views
-    // averaged read 28–31 of the 32 bits from run to run (2 of 9 runs undetected, with and
-    // without removal in the EOT term; 2026-12-05); on 16 (the quick bench's size, 93–95 % of
-    // the bits per unseen view, docs/RESULTS.md) they keep a margin.
+    // fresh random payload (the key's mask), so the margin is a distribution over payloads. At
+    // 128² the 8 held-out views averaged read 29–32 of the 32 bits (2 of 21 runs undetected;
+    // 24 training views did no better); at 256² 31–32 in 20 of 20 (docs/RESULTS.md, "Through
+    // the service, on views the job never saw").
     let mut t = TestApp::start().await;
     let k = t.keys().await;
     let bytes = std::fs::read(&path).unwrap();
@@ -468,13 +468,13 @@ async fn a_real_scene_is_detected_on_views_the_job_never_saw() {
         .as_str()
         .unwrap()
         .to_string();
-    // The default embedding (no "embed" options) on 24 orbit views at 128², every third one
-    // held out of training: the dispute renders only those 8 held-out views
-    // (docs/RESULTS.md, "service round trip").
+    // The default embedding (no "embed" options) on 24 orbit views at 256² (the service's
+    // default is 48 at 512²), every third one held out of training: the dispute renders only
+    // those 8 held-out views.
     let body = json!({
         "bits": 32,
         "message": "c0ffee42",
-        "options": {"orbit": {"count": 24, "width": 128, "height": 128}, "holdout_every": 3},
+        "options": {"orbit": {"count": 24, "width": 256, "height": 256}, "holdout_every": 3},
     });
     let job: Value = t
         .client
