@@ -39,7 +39,7 @@ pub struct HiddenDecoderConfig {
     /// Normalisation of every block.
     #[config(default = "Norm::Batch")]
     pub norm: Norm,
-    /// Convolution kernel side (3 = HiDDeN; 1 = per-pixel, see [`Norm::None`]).
+    /// Convolution kernel side (3 = HiDDeN; 1 = per-pixel, see [`Norm::Off`]).
     #[config(default = 3)]
     pub kernel: usize,
     /// The input band is multiplied by this before the first block (a steeper function of the

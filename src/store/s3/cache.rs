@@ -8,7 +8,6 @@ use std::time::Duration;
 use super::CACHE_GRACE;
 use crate::store::blobs::modified_longer_ago;
 
-/// Removes the files under `dir` (two levels: `ab/cdef…`) modified longer than `max_age` ago.
 /// Prunes the cache folder `dir` (`ab/cdef…` files): removes the files not modified for
 /// `max_age`, then — when `max_bytes` > 0 and the rest exceeds it — the least recently
 /// modified ones down to 90 % of `max_bytes`, sparing those modified within [`CACHE_GRACE`].
