@@ -457,9 +457,13 @@ pub struct QualityArgs {
     /// Message lengths (comma separated).
     #[arg(long, value_delimiter = ',')]
     bits: Option<Vec<usize>>,
-    /// Render side in pixels (orbit scenes and udon; lego and fern keep their fitted size).
+    /// Side of the orbit views in pixels (default 512, the CLI's and the service's).
     #[arg(long)]
     size: Option<u32>,
+    /// Longer side in pixels of a scene's own cameras (udon; default: their own resolution, as
+    /// `embed --cameras` and a job render them). lego and fern keep their fitted size.
+    #[arg(long)]
+    camera_size: Option<u32>,
     /// Orbit views to embed through (default 48, the CLI's; every 8th held out); the unseen
     /// views stay the same.
     #[arg(long)]
@@ -517,6 +521,10 @@ pub fn bench_cmd(c: &BenchCommand, progress: super::progress::ProgressMode) -> R
     }
     if let Some(s) = a.size {
         o.size = s;
+    }
+    if let Some(s) = a.camera_size {
+        anyhow::ensure!(s >= 16, "--camera-size must be at least 16");
+        o.camera_size = Some(s);
     }
     if let Some(n) = a.train_views {
         anyhow::ensure!(n >= 2, "--train-views must be at least 2");

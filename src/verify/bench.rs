@@ -9,7 +9,8 @@
 //! 1. **Training views as the CLI makes them**: `splatmark embed`'s defaults — 48 orbit views
 //!    (or `train_views`) (elevations −20°, 10°, 35°, 60°) at `size`², every `holdout_every`-th held out by
 //!    the CLI — or, for a scene with its own cameras (udon), every camera but every
-//!    `holdout_every_cameras`-th.
+//!    `holdout_every_cameras`-th, at the cameras' own resolution (as `embed --cameras` and a job
+//!    render them; `camera_size` resizes them).
 //! 2. **Embedding with [`EmbedOptions::default`]** and a uniformly random payload (what the
 //!    service embeds: message ⊕ a random mask).
 //! 3. **Unseen views**: `eval_views` orbit views at other elevations (0°, 22°, 50°) and azimuths
@@ -81,9 +82,13 @@ pub struct QualityOptions {
     /// Fitting steps of the dataset scenes.
     pub fit_iterations: usize,
     pub bits: Vec<usize>,
-    /// Render side (training and evaluation), pixels: by default the orbit side of the CLI and
-    /// the service (`config::ViewDefaults`, 512).
+    /// Side of the orbit views (training and evaluation), pixels: by default the orbit side of
+    /// the CLI and the service (`config::ViewDefaults`, 512).
     pub size: u32,
+    /// Longer side of a scene's own cameras (udon), pixels, the aspect kept; `None`: the
+    /// cameras' own resolution — what `splatmark embed --cameras` and a job with uploaded
+    /// cameras render at unless told a width or height.
+    pub camera_size: Option<u32>,
     /// Orbit views to train on; `None`: what the CLI and the service take for the payload
     /// (`config::ViewDefaults::orbit_for`: 48) …
     pub train_views: Option<usize>,
@@ -133,6 +138,7 @@ impl QualityOptions {
             fit_iterations: crate::fit::FitConfig::default().iterations,
             bits: vec![32, 48, 64],
             size: crate::config::ViewDefaults::default().width,
+            camera_size: None,
             train_views: None,
             train_elevations: OrbitOptions::default().elevations_deg,
             holdout_every: 8,
@@ -304,12 +310,12 @@ pub fn views(
     if let Some(c) = &scene.cameras {
         let path = opts.scenes_dir.join(c);
         let cams = read_cameras(&path).map_err(|e| input_err(&path, e))?;
-        // The longer side at `size`, the aspect kept.
+        // The longer side at `camera_size`, the aspect kept; by default as the user gets them.
         let wide = cams.first().is_some_and(|c| c.width >= c.height);
-        let cams = if wide {
-            resize_all(cams, Some(opts.size), None)
-        } else {
-            resize_all(cams, None, Some(opts.size))
+        let cams = match opts.camera_size {
+            None => cams,
+            Some(n) if wide => resize_all(cams, Some(n), None),
+            Some(n) => resize_all(cams, None, Some(n)),
         };
         let every = opts.holdout_every_cameras.max(2);
         let (mut train, held) = split_views(&cams, every);
@@ -456,10 +462,11 @@ pub fn run(
             let model = bench_model(opts.weights_dir.as_deref(), bits, device)?;
             let payload = bench_message(opts.seed, name, bits);
             log.line(&format!(
-                "{name}, {bits} bits: embedding over {} training views ({} Gaussians, {}²)…",
+                "{name}, {bits} bits: embedding over {} training views ({} Gaussians, {}×{})…",
                 train.len(),
                 g.len(),
-                opts.size
+                train.first().map_or(0, |c| c.width),
+                train.first().map_or(0, |c| c.height),
             ));
             let t0 = Instant::now();
             let mut last = 0;
@@ -701,6 +708,23 @@ mod tests {
         opts.size = 64;
         let (train, held) = views(&scene, &g, &opts, 32).unwrap();
         assert_eq!((train.len(), held.len()), (6, 2));
+        // The cameras render at their own resolution, as the CLI and a job render them, unless
+        // the bench is given a size for them.
+        assert!(
+            train
+                .iter()
+                .chain(&held)
+                .all(|c| (c.width, c.height) == (64, 48))
+        );
+        opts.camera_size = Some(32);
+        let (small, small_held) = views(&scene, &g, &opts, 32).unwrap();
+        assert!(
+            small
+                .iter()
+                .chain(&small_held)
+                .all(|c| (c.width, c.height) == (32, 24))
+        );
+        opts.camera_size = None;
         opts.camera_orbit = 5;
         let (with_orbit, held_too) = views(&scene, &g, &opts, 32).unwrap();
         assert_eq!(held_too, held, "the unseen views are the held-out cameras");
