@@ -9,7 +9,7 @@
 //! `≡ 0 (mod 10)` ([`is_held_out`]), about 10 % of the images. The rule depends on the name only,
 //! so it is stable under adding or removing other images, across machines and across runs, and
 //! `decoder train` and `decoder eval` agree on it without sharing any state. On the shared data
-//! set (Kodak + CBSD68 + skimage, 99 images) it holds out 10 of them ([`held_out_names`] of the
+//! set (Kodak + CBSD68 + skimage, 99 images) it holds out 10 of them (`held_out_names` of the
 //! tests lists them).
 //!
 //! # Crops

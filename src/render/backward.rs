@@ -12,7 +12,7 @@ use crate::scene::Gaussians;
 use rayon::prelude::*;
 
 /// Gradients of a scalar loss with respect to every Gaussian parameter, laid out exactly like
-/// the scene (`params.means[i]` is ∂L/∂means[i], and so on), plus per-Gaussian blend weights.
+/// the scene (`params.means[i]` is `∂L/∂means[i]`, and so on), plus per-Gaussian blend weights.
 pub struct Gradients<T> {
     pub params: Gaussians<T>,
     /// ∂L/∂c_i for the colour c_i that Gaussian i was composited with: the override colour when

@@ -171,7 +171,7 @@ pub struct RenderStats {
     pub tile_entries: usize,
 }
 
-/// The result of a forward pass; keep it to run [`super::backward`].
+/// The result of a forward pass; keep it to run [`super::backward`](fn@super::backward).
 pub struct Rendered<T> {
     pub width: u32,
     pub height: u32,

@@ -1,6 +1,6 @@
 //! PlayCanvas SOG ("Spatially Ordered Gaussians"): a `meta.json` and 8-bit images, read either
 //! unbundled (a directory, or its `meta.json`) or bundled (`.sog`: a ZIP of the same files at its
-//! root, read with [`zip`](crate::scene::zip)). Read-only: splatmark does not write SOG.
+//! root, read with [`zip`]). Read-only: splatmark does not write SOG.
 //!
 //! Sources: the specification (developer.playcanvas.com/user-manual/gaussian-splatting/formats/sog
 //! and …/formats/sog-v2, repository `playcanvas/developer-site`,

@@ -115,7 +115,7 @@ impl Store {
     /// still unreferenced (rows are only written under that lock, after their blobs were
     /// checked under it too) and still old enough (a commit of the same bytes by any replica
     /// since the listing made it young). One audit row "blob.gc" when anything was removed.
-    /// Cached copies of S3 blobs older than [`CACHE_MAX_AGE`] are dropped too.
+    /// Cached copies of S3 blobs older than `CACHE_MAX_AGE` (a day) are dropped too.
     pub async fn collect_garbage(&self, min_age: std::time::Duration) -> Result<GcReport> {
         let blobs = self.blobs().clone();
         let listed = tokio::task::spawn_blocking(move || {

@@ -179,7 +179,7 @@ impl BlobStore {
     }
 
     /// [`Self::commit`], pinning the blob (see [`PinnedBlob`]) before it is renamed into place, so
-    /// that a concurrent [`Self::remove_if_only_pin`] of the same bytes cannot remove it under us.
+    /// that a concurrent `remove_if_only_pin` of the same bytes cannot remove it under us.
     pub fn commit_pinned(&self, mut tmp: tempfile::NamedTempFile) -> io::Result<PinnedBlob> {
         tmp.as_file_mut().flush()?;
         let (sha256, size) = hash_file(tmp.as_file_mut())?;

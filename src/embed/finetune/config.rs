@@ -168,7 +168,7 @@ pub struct FinetuneConfig {
     /// The model attack "parameter noise" in the EOT term: on a step that draws an attack
     /// (after the same ramp), with this probability the watermark loss reads the step's views
     /// of a copy of the scene with normal noise of standard deviation `eot_noise_std` on every
-    /// parameter ([`crate::attack::ModelAttack::Noise`]; rasterised, since the means move), and
+    /// parameter ([`crate::attack::model::ModelAttack::Noise`]; rasterised, since the means move), and
     /// its gradient — ∂L/∂θ at the noisy θ, the noise being additive — steps the clean scene.
     /// The visual loss and the fidelity bound always see the clean scene. 0 = off, the default:
     /// measured at 512² (docs/RESULTS.md, "Parameter noise in the EOT term"), 0.3 raised the

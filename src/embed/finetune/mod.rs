@@ -11,7 +11,7 @@
 //!   (1/|V|)·Σ_v BCE(D(q(I_v)), b), so that every view decodes on its own), t ~ p(t) is one draw of the differentiable attack family
 //!   ([`crate::attack::diff::random_composition`]) applied to every view of the step, q is the
 //!   8-bit quantisation a saved render goes through (straight-through), and LL★ are the bands of
-//!   the original scene's render (2-level Haar, [`crate::decoder::dwt`]).
+//!   the original scene's render (2-level Haar, [`crate::decoder::dwt`](mod@crate::decoder::dwt)).
 //! - **L_vis** = λ_rec·L1 + λ_dssim·(1 − SSIM) + λ_high·Σ_levels L1(LH, HL, HH) against the
 //!   original scene's renders. LPIPS needs pretrained network weights that do not ship with the
 //!   project; the D-SSIM term takes its place (the `Lvis` weights are a config, so a perceptual

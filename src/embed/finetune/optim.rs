@@ -105,11 +105,11 @@ impl Adam {
 }
 
 /// Largest |step| of one parameter in units of its learning rate under
-/// [`StepRule::RouteNormalized`] (gradients are heavy-tailed: unclipped, a few Gaussians took
+/// [`super::StepRule::RouteNormalized`] (gradients are heavy-tailed: unclipped, a few Gaussians took
 /// steps of hundreds of learning rates and the render fell to 10 dB).
 pub const ROUTE_CLIP: f32 = 4.0;
 
-/// [`StepRule::RouteNormalized`]: momentum per parameter, one second moment per channel shared
+/// [`super::StepRule::RouteNormalized`]: momentum per parameter, one second moment per channel shared
 /// by the Gaussians of the route (`on`), bias-corrected like Adam.
 pub(super) struct RouteMomentum {
     m: Gaussians,

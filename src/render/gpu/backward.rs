@@ -8,7 +8,7 @@ use crate::scene::Gaussians;
 
 impl GpuRenderer {
     /// Back-propagates `d_image` (∂L/∂pixel, row-major RGB) through the GPU render `fwd` of
-    /// `g` (the scene that was rendered): the CPU reference's [`super::backward`], with the
+    /// `g` (the scene that was rendered): the CPU reference's `render::backward`, with the
     /// same [`Gradients`] — deterministic (no float atomics), equal to it up to rounding.
     pub fn backward(
         &self,

@@ -6,7 +6,7 @@
 //!   `multipart_threshold` bytes, a multipart upload in parts of `part_size` bytes above it
 //!   (two parts in flight at most). An object of that size already under the key is not
 //!   uploaded again, only *touched* (see below).
-//! - **Reads are verified**: [`S3Blobs::fetch`] streams the object into a temp file, hashing it,
+//! - **Reads are verified**: `S3Blobs::fetch` streams the object into a temp file, hashing it,
 //!   and moves it into the local cache `DATA_DIR/blobs/cache/ab/cdef…` only when its SHA-256 is
 //!   its name and its size the object's; otherwise [`StoreError::BlobCorrupt`], nothing cached.
 //!   A cache hit is checked cheaply: a HEAD says the object still exists (a blob the garbage
