@@ -362,7 +362,11 @@ fn nuisance_samples(
     for k in 0..4u64 {
         let seed = rng.next_u64();
         let a = match k {
-            0 | 1 => ModelAttack::Noise { sigma: 0.1, seed },
+            0 | 1 => ModelAttack::Noise {
+                sigma: 0.1,
+                position_scale: 1.0,
+                seed,
+            },
             2 => ModelAttack::Remove {
                 fraction: 0.2,
                 seed,

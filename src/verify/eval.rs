@@ -2,7 +2,8 @@
 //! fidelity (PSNR, SSIM of 8-bit renders against the original's renders), bit accuracy of the
 //! clean renders, of the renders under each image attack (`attack::real::paper_protocol`, plus
 //! blur σ = 0.8, which does act on 8-bit images), and of renders of the scene under each model
-//! attack (`attack::model`); and, as a control, the original scene's renders decoded against
+//! attack (`attack::model`: the paper's three, plus parameter noise carried to the scene's units,
+//! `noise_0.1_scaled`); and, as a control, the original scene's renders decoded against
 //! the same message (an unmarked scene must not be detected).
 //!
 //! Bit accuracy per row is the mean over views of per-view accuracy (the papers' figure); each
@@ -13,7 +14,7 @@ use burn::tensor::Device;
 use image::RgbImage;
 use serde::{Deserialize, Serialize};
 
-use crate::attack::model::{ModelAttack, ModelAttackError};
+use crate::attack::model::{ModelAttack, ModelAttackError, view_position_scale};
 use crate::attack::{AttackError, RealAttack, paper_protocol};
 use crate::decoder::WatermarkModel;
 use crate::decoder::artifact::rgb8_tensor;
@@ -74,6 +75,10 @@ pub struct SceneEval {
     pub rows: Vec<Row>,
     /// Each view on its own, clean: how much of it shows the asset, its fidelity, its bits.
     pub per_view: Vec<ViewEval>,
+    /// The factor of the means' noise in the `noise_0.1_scaled` row
+    /// ([`crate::attack::model::view_position_scale`]; absent in reports from before it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub noise_position_scale: Option<f32>,
 }
 
 /// One evaluation view, clean.
@@ -292,7 +297,22 @@ pub fn evaluate_scene(
             .collect::<Result<Vec<_>, _>>()?;
         rows.push(row(name, "image", &attacked, model, message, fpr, &device)?);
     }
-    for (name, a) in ModelAttack::paper_protocol(seed) {
+    let noise_position_scale = view_position_scale(marked, cams);
+    let mut model_attacks = ModelAttack::paper_protocol(seed);
+    if let Some(position_scale) = noise_position_scale {
+        model_attacks.insert(
+            1,
+            (
+                "noise_0.1_scaled".into(),
+                ModelAttack::Noise {
+                    sigma: 0.1,
+                    position_scale,
+                    seed,
+                },
+            ),
+        );
+    }
+    for (name, a) in model_attacks {
         let g = a.apply(marked)?;
         let imgs = render_views(&g, cams, opts)?;
         let mut r = row(&name, "model", &imgs, model, message, fpr, &device)?;
@@ -306,6 +326,7 @@ pub fn evaluate_scene(
         fpr,
         rows,
         per_view,
+        noise_position_scale,
     })
 }
 

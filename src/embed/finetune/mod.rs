@@ -378,6 +378,7 @@ pub fn finetune(
         .then(|| {
             let attack = ModelAttack::Noise {
                 sigma: cfg.eot_noise_std.sqrt(),
+                position_scale: 1.0,
                 seed: rng.next_u64(),
             };
             attack.apply(&g).expect("σ validated above")

@@ -808,6 +808,7 @@ fn a_noisy_copy_of_the_scene_is_rasterised_even_where_views_are_replayed() {
     let (g, views, opts) = setup();
     let noisy = crate::attack::model::ModelAttack::Noise {
         sigma: 0.1,
+        position_scale: 1.0,
         seed: 3,
     }
     .apply(&g)

@@ -366,6 +366,7 @@ pub(crate) mod tests {
                     r("remove_20", 0.5),
                 ],
                 per_view: Vec::new(),
+                noise_position_scale: None,
             },
         }
     }
