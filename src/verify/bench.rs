@@ -621,15 +621,18 @@ pub fn markdown(report: &QualityReport) -> String {
         );
     }
     if report.runs.iter().any(|r| !r.eval.per_view.is_empty()) {
-        s += "\nEach unseen view, clean (share of its pixels showing the asset · bits right, %):\n\n";
+        s += "\nEach unseen view, clean (share of its pixels showing the asset · bits right, %; the share of the asset the 40 % crop keeps):\n\n";
         for r in report.runs.iter().filter(|r| !r.eval.per_view.is_empty()) {
             let views: Vec<String> = r
                 .eval
                 .per_view
                 .iter()
                 .map(|v| {
+                    let crop = v.asset_in_crop.map_or(String::new(), |k| {
+                        format!(" (crop keeps {:.0} % of it)", 100.0 * k)
+                    });
                     format!(
-                        "{:.0} % · {:.1}",
+                        "{:.0} % · {:.1}{crop}",
                         100.0 * v.coverage,
                         100.0 * v.bit_accuracy
                     )

@@ -90,6 +90,11 @@ pub struct ViewEval {
     pub coverage: f64,
     pub psnr: f64,
     pub bit_accuracy: f64,
+    /// Share of the asset's pixels (as [`coverage`] counts them) that the protocol's crop keeps
+    /// (a crop that keeps none of the asset leaves nothing to decode); `None` when the view
+    /// shows no asset (or in reports from before it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub asset_in_crop: Option<f64>,
 }
 
 /// Share of `img`'s pixels farther than 2 levels from `background` (linear [0, 1]) in any
@@ -102,6 +107,22 @@ pub fn coverage(img: &RgbImage, background: [f32; 3]) -> f64 {
         .filter(|p| (0..3).any(|c| (i32::from(p.0[c]) - bg[c]).abs() > 2))
         .count();
     on as f64 / n as f64
+}
+
+/// Share of the asset's pixels in `img` (as [`coverage`] counts them) that are still in
+/// `attack(img)` — for a crop, how much of the asset it keeps; `None` when `img` shows none.
+pub fn asset_kept(
+    img: &RgbImage,
+    attack: &RealAttack,
+    background: [f32; 3],
+) -> Result<Option<f64>, AttackError> {
+    let pixels = |im: &RgbImage| f64::from(im.width()) * f64::from(im.height());
+    let before = coverage(img, background) * pixels(img);
+    if before == 0.0 {
+        return Ok(None);
+    }
+    let kept = attack.apply(img)?;
+    Ok(Some(coverage(&kept, background) * pixels(&kept) / before))
 }
 
 /// Renders `g` through every camera to 8-bit images.
@@ -259,25 +280,37 @@ pub fn evaluate_scene(
         / n;
 
     let clean = view_logits(&mark, model, &device);
-    let per_view = cams
-        .iter()
-        .zip(orig.iter().zip(&mark))
-        .zip(&clean)
-        .map(|((c, (a, b)), z)| ViewEval {
-            camera: c.name.clone(),
-            coverage: coverage(a, opts.background),
-            psnr: psnr_u8(a, b),
-            bit_accuracy: bit_accuracy(z, message),
-        })
-        .collect();
-    let mut rows = vec![
-        row_of_logits("clean", "clean", &clean, message, fpr)?,
-        row("unmarked", "unmarked", &orig, model, message, fpr, &device)?,
-    ];
     let mut image_attacks: Vec<(String, RealAttack)> = paper_protocol(seed)
         .into_iter()
         .map(|(n, a)| (n.to_string(), a))
         .collect();
+    let crop = image_attacks
+        .iter()
+        .find(|(_, a)| matches!(a, RealAttack::Crop { .. }))
+        .map(|(_, a)| a.clone());
+    let mut per_view = Vec::with_capacity(cams.len());
+    for ((c, (a, b)), z) in cams.iter().zip(orig.iter().zip(&mark)).zip(&clean) {
+        let asset_in_crop = match &crop {
+            Some(attack) => {
+                asset_kept(a, attack, opts.background).map_err(|source| EvalError::Attack {
+                    name: "crop".into(),
+                    source,
+                })?
+            }
+            None => None,
+        };
+        per_view.push(ViewEval {
+            camera: c.name.clone(),
+            coverage: coverage(a, opts.background),
+            psnr: psnr_u8(a, b),
+            bit_accuracy: bit_accuracy(z, message),
+            asset_in_crop,
+        });
+    }
+    let mut rows = vec![
+        row_of_logits("clean", "clean", &clean, message, fpr)?,
+        row("unmarked", "unmarked", &orig, model, message, fpr, &device)?,
+    ];
     image_attacks.push((
         "blur_0.8".into(),
         RealAttack::Blur {
@@ -333,6 +366,33 @@ pub fn evaluate_scene(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_crop_keeps_the_asset_only_where_it_sits_in_the_centre() {
+        let crop = RealAttack::Crop { keep: 0.4 };
+        let black = [0.0; 3];
+        let mut img = RgbImage::new(100, 80);
+        assert_eq!(asset_kept(&img, &crop, black).unwrap(), None);
+        // An asset in the top-left corner (the udon views' case): the centred crop keeps none.
+        for x in 0..15 {
+            for y in 0..12 {
+                img.put_pixel(x, y, image::Rgb([200, 120, 40]));
+            }
+        }
+        assert_eq!(asset_kept(&img, &crop, black).unwrap(), Some(0.0));
+        // In the centre: all of it.
+        let mut centre = RgbImage::new(100, 80);
+        for x in 45..55 {
+            for y in 35..45 {
+                centre.put_pixel(x, y, image::Rgb([200, 120, 40]));
+            }
+        }
+        assert_eq!(asset_kept(&centre, &crop, black).unwrap(), Some(1.0));
+        // Everywhere: the crop's share of the area.
+        let full = RgbImage::from_pixel(100, 80, image::Rgb([9, 9, 9]));
+        let k = asset_kept(&full, &crop, black).unwrap().unwrap();
+        assert!((k - 0.4).abs() < 0.02, "{k}");
+    }
 
     #[test]
     fn coverage_counts_the_pixels_that_differ_from_the_background() {
