@@ -310,6 +310,7 @@ pub fn embed(
     if cameras.is_empty() {
         return Err(EmbedError::NoViews);
     }
+    opts.finetune.validate().map_err(EmbedError::Invalid)?;
     // The most steps finetuning may take (it may stop early when `extra_steps` > 0).
     let total = opts.finetune.steps + opts.finetune.extra_steps;
     let report_phase = |p: &mut dyn FnMut(Progress) -> ControlFlow<()>, phase| match p(Progress {

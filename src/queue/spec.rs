@@ -76,16 +76,10 @@ impl JobOptions {
         if embed.view_scales.len() > 4 {
             return Err("options.embed.view_scales: at most 4 factors".into());
         }
-        let ft = &embed.finetune;
-        if !(ft.wm_sharpness > 0.0
-            && ft.wm_sharpness <= 100.0
-            && (0.0..=20.0).contains(&ft.wm_margin))
-        {
-            return Err(
-                "options.embed.finetune: wm_margin must be in [0, 20] and wm_sharpness in (0, 100]"
-                    .into(),
-            );
-        }
+        embed
+            .finetune
+            .validate()
+            .map_err(|e| format!("options.embed.finetune: {e}"))?;
         let pr = &embed.projection;
         if pr.rank > 0 && !pr.matched {
             // The service's keys and /v1/verify carry the asset reference and a matched head,
@@ -243,6 +237,10 @@ mod tests {
             (
                 json!({"embed": {"finetune": {"wm_sharpness": 0.0}}}),
                 "wm_sharpness",
+            ),
+            (
+                json!({"embed": {"finetune": {"wm_geometry": true}}}),
+                "wm_geometry",
             ),
         ] {
             let o: JobOptions = serde_json::from_value(v).unwrap();

@@ -146,6 +146,8 @@ pub struct FinetuneConfig {
     /// colour (SH) only, as GuardSplat does — measured on donut (one 128² view, 150 steps),
     /// geometry spent the fidelity budget (12 dB without a bound) and colour alone reached
     /// 84–91 % at 37–38 dB where colour + geometry reached 62 % (docs/RESULTS.md).
+    /// Decoupled only: with `coupled` the finetuning refuses it (every Gaussian then steps
+    /// with `lr`, which decides what moves).
     pub wm_geometry: bool,
     /// The watermark route's learning rates follow a cosine from 1 to this fraction of
     /// themselves over `steps` (a decaying step lets the writes settle on the fidelity bound,
@@ -219,6 +221,42 @@ impl FinetuneConfig {
             eot_remove_probability: 0.0,
             ..Self::default()
         }
+    }
+}
+
+impl FinetuneConfig {
+    /// The settings no finetuning can run with, or that would silently do nothing: checked by
+    /// [`super::finetune`], by the embedding pipeline before its first phase and by the
+    /// service's job options before a job is queued.
+    pub fn validate(&self) -> Result<(), String> {
+        if !(self.wm_sharpness > 0.0
+            && self.wm_sharpness <= 100.0
+            && (0.0..=20.0).contains(&self.wm_margin))
+        {
+            return Err(format!(
+                "wm_margin must be in [0, 20] and wm_sharpness in (0, 100], got {} and {}",
+                self.wm_margin, self.wm_sharpness
+            ));
+        }
+        if !((0.0..=1.0).contains(&self.eot_noise_probability)
+            && self.eot_noise_std.is_finite()
+            && self.eot_noise_std >= 0.0)
+        {
+            return Err(format!(
+                "eot_noise_probability must be in [0, 1] and eot_noise_std finite and ≥ 0, got {} and {}",
+                self.eot_noise_probability, self.eot_noise_std
+            ));
+        }
+        if self.coupled && self.wm_geometry {
+            // Coupled, every Gaussian steps with `lr` (base colours only by default).
+            return Err(
+                "wm_geometry applies to the decoupled routes (coupled: false); coupled \
+                 finetuning moves the parameters finetune.lr gives a rate (base colours by \
+                 default)"
+                    .into(),
+            );
+        }
+        Ok(())
     }
 }
 

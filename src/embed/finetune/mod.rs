@@ -243,24 +243,7 @@ pub fn finetune(
     if views.is_empty() {
         return Err(FinetuneError::NoViews);
     }
-    if !(cfg.wm_sharpness > 0.0
-        && cfg.wm_sharpness <= 100.0
-        && (0.0..=20.0).contains(&cfg.wm_margin))
-    {
-        return Err(FinetuneError::Invalid(format!(
-            "wm_margin must be in [0, 20] and wm_sharpness in (0, 100], got {} and {}",
-            cfg.wm_margin, cfg.wm_sharpness
-        )));
-    }
-    if !((0.0..=1.0).contains(&cfg.eot_noise_probability)
-        && cfg.eot_noise_std.is_finite()
-        && cfg.eot_noise_std >= 0.0)
-    {
-        return Err(FinetuneError::Invalid(format!(
-            "eot_noise_probability must be in [0, 1] and eot_noise_std finite and ≥ 0, got {} and {}",
-            cfg.eot_noise_probability, cfg.eot_noise_std
-        )));
-    }
+    cfg.validate().map_err(FinetuneError::Invalid)?;
     for (index, v) in views.iter().enumerate() {
         let expected = (v.camera.width * v.camera.height) as usize;
         if v.target.len() != expected {

@@ -446,6 +446,18 @@ fn bad_inputs_are_typed_errors() {
             Err(FinetuneError::Invalid(_))
         ));
     }
+    // A switch that would do nothing is refused, not ignored.
+    let cfg = FinetuneConfig {
+        coupled: true,
+        wm_geometry: true,
+        ..config(1)
+    };
+    assert!(matches!(
+        finetune(&g, &mk, &views, &m, &message(), &cfg, |_| {
+            ControlFlow::Continue(())
+        }),
+        Err(FinetuneError::Invalid(e)) if e.contains("wm_geometry")
+    ));
 }
 
 #[test]
