@@ -108,7 +108,8 @@ async fn an_owner_watermarks_looks_verifies_and_audits_in_the_console() {
     b.click(&b.find("#layer-roles", wait).await).await;
     b.wait(
         "const i = document.getElementById('attr-image'); \
-         return i !== null && i.dataset.layer === 'roles' && i.complete && i.naturalWidth === 384",
+         return i !== null && i.dataset.layer === 'roles' && i.dataset.ready === '1' \
+         && i.complete && i.naturalWidth === 384",
         Duration::from_secs(60),
     )
     .await;

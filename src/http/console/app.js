@@ -285,17 +285,27 @@ function viewer(asset) {
   }, { view: "Render", roles: "Roles", heat: "Watermark gradient", diff: "Difference ×10" }[l]));
   const slider = h("input", { type: "range", min: 0, max: VIEWS - 1, value: 0, id: "attr-view",
     oninput: () => { view = Number(slider.value); load(); } });
+  // Each load has a number; a slower, older one never replaces a newer picture. `data-ready`
+  // is "1" once the newest picture is decoded and shown (what the browser test waits for).
+  let loads = 0;
   async function load() {
+    const mine = ++loads;
+    img.dataset.ready = "0";
     caption.textContent = "Rendering…";
     try {
       const r = await api(`/v1/assets/${asset.id}/attribution/picture?layer=${layer}&view=${view}&views=${VIEWS}&size=${SIZE}`, { raw: true });
       const blob = await r.blob();
+      if (mine !== loads) return;
+      const next = URL.createObjectURL(blob);
+      img.src = next;
+      await img.decode().catch(() => {});
       if (url) URL.revokeObjectURL(url);
-      url = URL.createObjectURL(blob);
-      img.src = url;
+      url = next;
+      if (mine !== loads) return;
       img.dataset.layer = layer;
+      img.dataset.ready = "1";
       caption.textContent = `View ${view + 1} of ${VIEWS} (orbit), ${layer}`;
-    } catch (e) { caption.replaceChildren(errorBox(e)); }
+    } catch (e) { if (mine === loads) caption.replaceChildren(errorBox(e)); }
   }
   img.addEventListener("click", async (ev) => {
     const rect = img.getBoundingClientRect();
