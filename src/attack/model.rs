@@ -63,7 +63,7 @@ pub const PAPER_VIEW_HALF_EXTENT: f32 = 1.451;
 /// Half the narrower side of `cam`'s view at the depth of `centre`, in world units (`None`
 /// when `centre` is not in front of the camera).
 pub fn view_half_extent(cam: &Camera, centre: Vec3) -> Option<f32> {
-    let z = (cam.rotation_mat() * centre + cam.translation_vec()).z;
+    let z = cam.to_camera(centre).z;
     let half = (0.5 * cam.width as f32 / cam.fx).min(0.5 * cam.height as f32 / cam.fy);
     (z > 0.0 && half.is_finite() && half > 0.0).then_some(z * half)
 }
