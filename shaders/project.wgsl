@@ -15,6 +15,19 @@
 // the total.
 @group(0) @binding(4) var<storage, read_write> counts: array<u32>;
 
+// The Gaussians one dispatch covers (`src/render/gpu/chunk.rs`): global indices [first, first +
+// count). `params` (and `grads`) are bound a chunk at a time, from an aligned offset, so a scene
+// may exceed one storage binding: Gaussian `first`'s parameters start at float `params_at` of the
+// `params` binding, its gradients at float `grads_at` of the `grads` binding. `splats`, `tiles`,
+// `counts` and `aux` are bound whole and indexed by the global index.
+struct Chunk {
+    first: u32,
+    count: u32,
+    params_at: u32,
+    grads_at: u32,
+}
+@group(0) @binding(8) var<uniform> chunk: Chunk;
+
 const C0: f32 = 0.28209479177387814;
 const C1: f32 = 0.4886025119029199;
 const C2_0: f32 = 1.0925484305920792;
@@ -66,13 +79,14 @@ fn clamp_ratio(v: f32, z: f32, lim: f32) -> vec2<f32> {
 
 @compute @workgroup_size(256)
 fn project(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let i = gid.x + gid.y * nwg.x * 256u;
-    if (i >= cam.n) {
+    let local = gid.x + gid.y * nwg.x * 256u;
+    if (local >= chunk.count) {
         return;
     }
+    let i = chunk.first + local;
     counts[i] = 0u;
     tiles[i] = vec4<u32>(0u);
-    let base = i * cam.stride;
+    let base = chunk.params_at + local * cam.stride;
     let m = vec3<f32>(params[base], params[base + 1u], params[base + 2u]);
     let tc = vec3<f32>(
         cam.w0.x * m.x + cam.w0.y * m.y + cam.w0.z * m.z + cam.t.x,
@@ -256,12 +270,13 @@ fn basis_grad(k: u32, d: vec3<f32>) -> vec3<f32> {
 
 @compute @workgroup_size(256)
 fn project_backward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let i = gid.x + gid.y * nwg.x * 256u;
-    if (i >= cam.n) {
+    let local = gid.x + gid.y * nwg.x * 256u;
+    if (local >= chunk.count) {
         return;
     }
+    let i = chunk.first + local;
     let gs = cam.stride - select(0u, 3u, cam.override_colors != 0u);
-    let out = i * gs;
+    let out = chunk.grads_at + local * gs;
     for (var k = 0u; k < gs; k = k + 1u) {
         grads[out + k] = 0.0;
     }
@@ -294,7 +309,7 @@ fn project_backward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
     aux[i * 6u + 4u] = g_xy.x;
     aux[i * 6u + 5u] = g_xy.y;
 
-    let base = i * cam.stride;
+    let base = chunk.params_at + local * cam.stride;
     let m = vec3<f32>(params[base], params[base + 1u], params[base + 2u]);
     var w: array<vec3<f32>, 3>;
     w[0] = cam.w0.xyz;

@@ -2,7 +2,8 @@
 //! back to front, a fixed-order sum per entry) and `shaders/project.wgsl`'s `project_backward`
 //! (per Gaussian, through the projection) to the CPU reference's [`Gradients`].
 
-use super::{GpuError, GpuRendered, GpuRenderer, GpuState, bind, block_on, grid};
+use super::chunk::Sliced;
+use super::{GpuError, GpuRendered, GpuRenderer, GpuState, bind, block_on};
 use crate::render::{Gradients, RenderError};
 use crate::scene::Gaussians;
 
@@ -91,7 +92,7 @@ impl GpuRenderer {
         let slots = self.storage("entry slots", u64::from(st.total) * 40)?;
         let n = u64::from(st.n);
         let gs = 14 + st.rest_len as u64;
-        let grads = self.storage("gradients", n * gs * 4)?;
+        let grads = self.sliced_storage("gradients", n * gs * 4)?;
         let aux = self.storage("aux", n * 24)?;
         let mut encoder = self.device.create_command_encoder(&Default::default());
         encoder.clear_buffer(&slots, 0, None);
@@ -118,34 +119,30 @@ impl GpuRenderer {
             pass.set_bind_group(1, &bg1, &[]);
             pass.dispatch_workgroups(st.tiles.0, st.tiles.1, 1);
         }
-        {
-            let bg = bind(
-                &self.device,
-                &self.pipes.project_backward,
-                0,
-                &[
-                    (0, &st.cam),
-                    (1, &st.params),
-                    (4, &st.offsets),
-                    (5, &slots),
-                    (6, &grads),
-                    (7, &aux),
-                ],
-            );
-            let (gx, gy) = grid(st.n.div_ceil(256));
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            pass.set_pipeline(&self.pipes.project_backward);
-            pass.set_bind_group(0, &bg, &[]);
-            pass.dispatch_workgroups(gx, gy, 1);
-        }
+        let mut keep = Vec::new();
+        self.per_gaussian(
+            &mut encoder,
+            &self.pipes.project_backward,
+            st.n,
+            &[(0, &st.cam), (4, &st.offsets), (5, &slots), (7, &aux)],
+            &[
+                Sliced {
+                    binding: 1,
+                    buffer: &st.params,
+                    floats: st.stride,
+                },
+                Sliced {
+                    binding: 6,
+                    buffer: &grads,
+                    floats: gs as u32,
+                },
+            ],
+            &mut keep,
+        )?;
         // Gradients and aux through one readback.
         let (gbytes, abytes) = (n * gs * 4, n * 24);
-        let out = self.storage("out", gbytes + abytes)?;
-        if gbytes > 0 {
-            encoder.copy_buffer_to_buffer(&grads, 0, &out, 0, gbytes);
-            encoder.copy_buffer_to_buffer(&aux, 0, &out, gbytes, abytes);
-        }
-        let bytes = self.read(encoder, &out, gbytes + abytes)?;
+        let bytes = self.read(encoder, &[(&grads, 0, gbytes), (&aux, 0, abytes)])?;
+        drop(keep);
         let floats: &[f32] = bytemuck::cast_slice(&bytes);
         let (g, a) = floats.split_at(gbytes as usize / 4);
         Ok((g.to_vec(), a.to_vec()))

@@ -9,9 +9,13 @@
 //! 16×16 workgroup per tile. Integer steps (scan, sort) are exact; the floating-point steps
 //! follow the reference's formulas in f32, so images agree to rounding (tested: ≤ 1/255 on
 //! ≥ 99.9 % of the pixels).
+//!
+//! The scene's parameters and their gradients may exceed one storage binding: the per-Gaussian
+//! kernels bind them a chunk of Gaussians at a time (`chunk.rs`).
 
 mod backward;
 mod choice;
+mod chunk;
 mod sort;
 
 pub use choice::{DeviceRequest, Rasterizer, shared};
@@ -68,6 +72,9 @@ pub struct GpuRenderer {
     pipes: Pipelines,
     /// Renders or backward passes left to fail as on a lost device ([`Self::inject_device_loss`]).
     faults: std::sync::atomic::AtomicUsize,
+    /// At most this many Gaussians per dispatch of the per-Gaussian kernels (`chunk.rs`); unset,
+    /// as many as one storage binding holds.
+    per_dispatch: Option<u32>,
 }
 
 struct Pipelines {
@@ -112,6 +119,8 @@ struct GpuState {
     tiles: (u32, u32),
     rest_len: usize,
     sh_degree: u8,
+    /// Floats a Gaussian in `params` (the gradients: 14 + `rest_len`).
+    stride: u32,
     cam: wgpu::Buffer,
     params: wgpu::Buffer,
     splats: wgpu::Buffer,
@@ -287,7 +296,16 @@ impl GpuRenderer {
             pipes,
             burn: Default::default(),
             faults: Default::default(),
+            per_dispatch: None,
         })
+    }
+
+    /// This renderer with at most `n` Gaussians per dispatch of the per-Gaussian kernels, so
+    /// that small scenes go through several chunks, as scenes past one binding do.
+    #[cfg(test)]
+    pub(crate) fn with_gaussians_per_dispatch(mut self, n: u32) -> Self {
+        self.per_dispatch = Some(n);
+        self
     }
 
     /// burn's device on this renderer's wgpu device and queue (registered with burn's wgpu
@@ -375,8 +393,18 @@ impl GpuRenderer {
         }
     }
 
+    /// A storage buffer the kernels bind whole: at most the device's binding limit.
     fn storage(&self, label: &str, bytes: u64) -> Result<wgpu::Buffer, GpuError> {
         let limit = self.device.limits().max_storage_buffer_binding_size;
+        self.storage_within(label, bytes, limit)
+    }
+
+    fn storage_within(
+        &self,
+        label: &str,
+        bytes: u64,
+        limit: u64,
+    ) -> Result<wgpu::Buffer, GpuError> {
         let size = bytes.max(64).next_multiple_of(4);
         if size > limit {
             return Err(GpuError::TooLarge {
@@ -403,20 +431,32 @@ impl GpuRenderer {
             })
     }
 
-    /// Submits `encoder` and reads `size` bytes of `buf` back.
+    /// Submits `encoder` and reads back the `(buffer, offset, bytes)` parts, one after the other
+    /// (offsets and sizes multiples of 4).
     fn read(
         &self,
         mut encoder: wgpu::CommandEncoder,
-        buf: &wgpu::Buffer,
-        size: u64,
+        parts: &[(&wgpu::Buffer, u64, u64)],
     ) -> Result<Vec<u8>, GpuError> {
+        let size: u64 = parts.iter().map(|p| p.2).sum();
+        let limit = self.device.limits().max_buffer_size;
+        if size > limit {
+            return Err(GpuError::TooLarge {
+                needed: size,
+                limit,
+            });
+        }
         let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("readback"),
             size: size.max(4),
             usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        encoder.copy_buffer_to_buffer(buf, 0, &staging, 0, size.max(4));
+        let mut at = 0;
+        for &(buf, offset, bytes) in parts.iter().filter(|p| p.2 > 0) {
+            encoder.copy_buffer_to_buffer(buf, offset, &staging, at, bytes);
+            at += bytes;
+        }
         self.queue.submit([encoder.finish()]);
         let slice = staging.slice(..);
         let (tx, rx) = std::sync::mpsc::channel();
@@ -533,7 +573,7 @@ impl GpuRenderer {
         let cam_bytes = camera_uniform(camera, opts, n, sh_degree, stride as u32, tiles_x, tiles_y);
         let cam_buf = self.uniform(&cam_bytes);
 
-        let param_buf = self.storage("params", params.len() as u64 * 4)?;
+        let param_buf = self.sliced_storage("params", params.len() as u64 * 4)?;
         self.queue
             .write_buffer(&param_buf, 0, bytemuck::cast_slice(&params));
         let splats = self.storage("splats", u64::from(n) * 48)?;
@@ -543,32 +583,21 @@ impl GpuRenderer {
         // Project, then scan the tile counts; read the total back to size the key buffers.
         let mut encoder = self.device.create_command_encoder(&Default::default());
         encoder.clear_buffer(&counts, 0, None);
-        let per_gaussian = grid(n.div_ceil(256));
-        {
-            let bg = bind(
-                &self.device,
-                &self.pipes.project,
-                0,
-                &[
-                    (0, &cam_buf),
-                    (1, &param_buf),
-                    (2, &splats),
-                    (3, &tiles),
-                    (4, &counts),
-                ],
-            );
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            pass.set_pipeline(&self.pipes.project);
-            pass.set_bind_group(0, &bg, &[]);
-            pass.dispatch_workgroups(per_gaussian.0, per_gaussian.1, 1);
-        }
         let mut keep = Vec::new();
+        self.per_gaussian(
+            &mut encoder,
+            &self.pipes.project,
+            n,
+            &[(0, &cam_buf), (2, &splats), (3, &tiles), (4, &counts)],
+            &[chunk::Sliced {
+                binding: 1,
+                buffer: &param_buf,
+                floats: stride as u32,
+            }],
+            &mut keep,
+        )?;
         self.scan(&mut encoder, &counts, n + 1, &mut keep)?;
-        let total_bytes = {
-            let staging = self.storage("total", 4)?;
-            encoder.copy_buffer_to_buffer(&counts, u64::from(n) * 4, &staging, 0, 4);
-            self.read(encoder, &staging, 4)?
-        };
+        let total_bytes = self.read(encoder, &[(&counts, u64::from(n) * 4, 4)])?;
         drop(keep);
         let total = u32::from_le_bytes(total_bytes[..4].try_into().expect("4 bytes"));
 
@@ -598,6 +627,7 @@ impl GpuRenderer {
                 ],
             );
             let mut pass = encoder.begin_compute_pass(&Default::default());
+            let per_gaussian = grid(n.div_ceil(256));
             pass.set_pipeline(&self.pipes.emit);
             pass.set_bind_group(0, &bg, &[]);
             pass.dispatch_workgroups(per_gaussian.0, per_gaussian.1, 1);
@@ -648,10 +678,7 @@ impl GpuRenderer {
         }
         let px = u64::from(w) * u64::from(h);
         // Image and final T through one readback.
-        let out = self.storage("out", px * 16)?;
-        encoder.copy_buffer_to_buffer(&image, 0, &out, 0, px * 12);
-        encoder.copy_buffer_to_buffer(&final_t, 0, &out, px * 12, px * 4);
-        let bytes = self.read(encoder, &out, px * 16)?;
+        let bytes = self.read(encoder, &[(&image, 0, px * 12), (&final_t, 0, px * 4)])?;
         drop(keep);
         let floats: &[f32] = bytemuck::cast_slice(&bytes);
         let (rgb, t) = floats.split_at(px as usize * 3);
@@ -667,6 +694,7 @@ impl GpuRenderer {
                 tiles: (tiles_x, tiles_y),
                 rest_len: rest,
                 sh_degree: g.sh_degree,
+                stride: stride as u32,
                 cam: cam_buf,
                 params: param_buf,
                 splats,

@@ -40,7 +40,7 @@ fn download(
     b: &wgpu::Buffer,
     n: usize,
 ) -> Vec<u32> {
-    let bytes = r.read(encoder, b, n as u64 * 4).unwrap();
+    let bytes = r.read(encoder, &[(b, 0, n as u64 * 4)]).unwrap();
     bytemuck::cast_slice(&bytes).to_vec()
 }
 
@@ -457,5 +457,127 @@ fn the_gpu_backward_is_deterministic() {
             "expected a gradient-size error, got {:?}",
             other.map(|_| ())
         ),
+    }
+}
+
+#[test]
+fn chunk_slices_start_aligned_fit_one_binding_and_cover_every_gaussian() {
+    for (align, floats, limit) in [
+        (256u64, 59u64, 1u64 << 27),
+        (16, 62, 4096),
+        (4, 14, 1000),
+        (64, 17, 300),
+    ] {
+        let bytes = floats * 4;
+        let per = chunk::most_per_chunk(limit, align, bytes) as u32;
+        assert!(per > 0);
+        let n = per * 5 + 7;
+        let mut first = 0u32;
+        while first < n {
+            let count = per.min(n - first);
+            let s = chunk::slice(first, count, bytes, align);
+            assert_eq!(s.offset % align, 0);
+            assert!(s.size <= limit, "{s:?} over {limit}");
+            assert_eq!(s.size % 4, 0);
+            assert_eq!(s.offset + u64::from(s.at) * 4, u64::from(first) * bytes);
+            assert_eq!(s.offset + s.size, u64::from(first + count) * bytes);
+            first += count;
+        }
+    }
+}
+
+/// Every float of `a` and `b`, bit for bit.
+fn assert_same_bits(what: &str, a: &[f32], b: &[f32]) {
+    assert_eq!(a.len(), b.len(), "{what}");
+    for (k, (x, y)) in a.iter().zip(b).enumerate() {
+        assert_eq!(x.to_bits(), y.to_bits(), "{what}[{k}]: {x} against {y}");
+    }
+}
+
+#[test]
+fn chunked_projection_renders_and_back_propagates_bit_for_bit_as_one_dispatch() {
+    let whole = gpu();
+    let chunked = GpuRenderer::new(AdapterChoice::AllowSoftware)
+        .unwrap()
+        .with_gaussians_per_dispatch(333);
+    let limits = chunked.device.limits();
+    eprintln!(
+        "storage binding ≤ {} B from offsets aligned to {} B; buffers ≤ {} B",
+        limits.max_storage_buffer_binding_size,
+        limits.min_storage_buffer_offset_alignment,
+        limits.max_buffer_size
+    );
+    // 333, 333, 333 and 1 Gaussians a dispatch: chunks that start off every alignment.
+    assert_eq!(chunked.per_chunk(59).unwrap(), 333);
+    let colors: Arc<[[f32; 3]]> = (0..1000)
+        .map(|i| [(i % 5) as f32 / 5.0, 0.3, 0.9])
+        .collect();
+    let cases = [
+        (
+            "SH3",
+            scene(41, 1000, 3, 1.2, (-4.0, -2.5)),
+            RenderOptions::default(),
+        ),
+        (
+            "SH0",
+            scene(42, 1000, 0, 1.2, (-4.0, -2.5)),
+            RenderOptions::default(),
+        ),
+        // Parameters 3 floats a Gaussian longer than their gradients: two slicings.
+        (
+            "colour override",
+            scene(43, 1000, 1, 1.2, (-4.0, -2.5)),
+            RenderOptions {
+                colors: Some(colors),
+                ..Default::default()
+            },
+        ),
+    ];
+    let cam = camera(72, 56, 60.0);
+    let mut rng = Lcg(17);
+    let d_image: Vec<[f32; 3]> = (0..72 * 56)
+        .map(|_| {
+            [
+                rng.range(-1.0, 1.0),
+                rng.range(-1.0, 1.0),
+                rng.range(-1.0, 1.0),
+            ]
+        })
+        .collect();
+    for (name, g, opts) in cases {
+        let a = whole.render(&g, &cam, &opts).unwrap();
+        let b = chunked.render(&g, &cam, &opts).unwrap();
+        assert!(a.tile_entries > 1000, "{name}: {} entries", a.tile_entries);
+        assert_eq!(a.tile_entries, b.tile_entries, "{name}");
+        let flat3 = |v: &[[f32; 3]]| v.iter().flatten().copied().collect::<Vec<_>>();
+        let flat4 = |v: &[[f32; 4]]| v.iter().flatten().copied().collect::<Vec<_>>();
+        let flat2 = |v: &[[f32; 2]]| v.iter().flatten().copied().collect::<Vec<_>>();
+        assert_same_bits(name, &flat3(&a.image), &flat3(&b.image));
+        assert_same_bits(name, &a.final_t, &b.final_t);
+        let ga = whole.backward(&g, &a, &d_image).unwrap();
+        let gb = chunked.backward(&g, &b, &d_image).unwrap();
+        let (pa, pb) = (&ga.params, &gb.params);
+        assert!(pa.means.iter().flatten().any(|v| *v != 0.0), "{name}");
+        for (kind, x, y) in [
+            ("means", flat3(&pa.means), flat3(&pb.means)),
+            ("log_scales", flat3(&pa.log_scales), flat3(&pb.log_scales)),
+            ("rotations", flat4(&pa.rotations), flat4(&pb.rotations)),
+            (
+                "opacity_logits",
+                pa.opacity_logits.clone(),
+                pb.opacity_logits.clone(),
+            ),
+            ("sh_dc", flat3(&pa.sh_dc), flat3(&pb.sh_dc)),
+            ("sh_rest", pa.sh_rest.clone(), pb.sh_rest.clone()),
+            ("colors", flat3(&ga.colors), flat3(&gb.colors)),
+            (
+                "blend_weights",
+                ga.blend_weights.clone(),
+                gb.blend_weights.clone(),
+            ),
+            ("screen_xy", flat2(&ga.screen_xy), flat2(&gb.screen_xy)),
+        ] {
+            assert_same_bits(&format!("{name}: {kind}"), &x, &y);
+        }
     }
 }
