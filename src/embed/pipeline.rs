@@ -437,7 +437,7 @@ pub fn embed(
             progress(Progress {
                 phase: Phase::Finetune,
                 step: s.step,
-                total,
+                total: s.planned,
                 log: Some(*s),
             })
         },

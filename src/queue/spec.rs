@@ -239,6 +239,10 @@ mod tests {
                 "wm_sharpness",
             ),
             (
+                json!({"embed": {"finetune": {"stretch_bce": -0.5}}}),
+                "stretch_bce",
+            ),
+            (
                 json!({"embed": {"finetune": {"wm_geometry": true}}}),
                 "wm_geometry",
             ),

@@ -108,6 +108,12 @@ pub struct FinetuneConfig {
     pub extra_steps: usize,
     /// Steps between two such checks.
     pub check_every: usize,
+    /// Three tenths of the way through `steps`, when the training views' clean watermark loss
+    /// (each view's BCE, averaged over the last tenth of `steps`) is still above this, the
+    /// schedule stretches to twice `steps` (the learning rate's cosine then runs over all of
+    /// them): scenes whose views hold the message with thin margins get the steps they need.
+    /// 0 = off.
+    pub stretch_bce: f32,
     /// Views rendered per step; their logits are averaged (eq. `avglogits`) unless
     /// `per_view_loss`.
     pub views_per_step: usize,
@@ -247,6 +253,12 @@ impl FinetuneConfig {
                 self.eot_noise_probability, self.eot_noise_std
             ));
         }
+        if !(self.stretch_bce.is_finite() && self.stretch_bce >= 0.0) {
+            return Err(format!(
+                "stretch_bce must be finite and ≥ 0 (0 = off), got {}",
+                self.stretch_bce
+            ));
+        }
         if self.coupled && self.wm_geometry {
             // Coupled, every Gaussian steps with `lr` (base colours only by default).
             return Err(
@@ -270,6 +282,7 @@ impl Default for FinetuneConfig {
             steps: 300,
             extra_steps: 0,
             check_every: 25,
+            stretch_bce: 0.0,
             views_per_step: 4,
             per_view_loss: true,
             wm_margin: 0.0,

@@ -123,6 +123,10 @@ pub struct StepLog {
     /// (1 = within the bound).
     #[serde(default = "one")]
     pub wm_projection: f32,
+    /// The most steps the finetuning may take as planned at this step: `steps` (twice that
+    /// once the schedule stretched, `stretch_bce`) plus `extra_steps`.
+    #[serde(default)]
+    pub planned: usize,
     pub seconds: f32,
 }
 
@@ -298,7 +302,11 @@ pub fn finetune(
         .all(|&r| r == 0.0);
     let mut renderer = Renderer::new(views, render_opts, geometry_fixed, cfg.rasterizer.clone());
 
-    for step in 1..=cfg.steps + cfg.extra_steps {
+    // Where the schedule ends: `steps`, or twice that once `stretch_bce` stretched it.
+    let mut schedule_end = cfg.steps;
+    let mut step = 0;
+    while step < schedule_end + cfg.extra_steps {
+        step += 1;
         let t0 = Instant::now();
         // Views of this step: walk shuffled epochs.
         let mut picked = Vec::with_capacity(per_step);
@@ -515,7 +523,7 @@ pub fn finetune(
         // Gate and step.
         let lr = &cfg.lr;
         let base = [lr.means, lr.dc, lr.rest, lr.opacity, lr.rotation, lr.scale];
-        let t = (step.min(cfg.steps) as f32 / cfg.steps.max(1) as f32).min(1.0);
+        let t = (step.min(schedule_end) as f32 / schedule_end.max(1) as f32).min(1.0);
         let decay = cfg.wm_lr_min_fraction
             + (1.0 - cfg.wm_lr_min_fraction) * 0.5 * (1.0 + (std::f32::consts::PI * t).cos());
         let wm_s = cfg.wm_lr_scale * decay;
@@ -591,17 +599,21 @@ pub fn finetune(
             bit_acc_eot: acc_t,
             psnr,
             wm_projection: projection,
+            planned: schedule_end + cfg.extra_steps,
             seconds: t0.elapsed().as_secs_f32(),
         };
-        let flow = progress(&entry);
         log.push(entry);
-        if flow.is_break() {
+        if step == stretch_step(cfg) && stretch_due(cfg, &log) {
+            schedule_end = 2 * cfg.steps;
+            log.last_mut().expect("pushed").planned = schedule_end + cfg.extra_steps;
+        }
+        if progress(log.last().expect("pushed")).is_break() {
             return Err(FinetuneError::Cancelled { step });
         }
         if cfg.extra_steps > 0
-            && step >= cfg.steps
-            && ((step - cfg.steps).is_multiple_of(cfg.check_every.max(1))
-                || step == cfg.steps + cfg.extra_steps)
+            && step >= schedule_end
+            && ((step - schedule_end).is_multiple_of(cfg.check_every.max(1))
+                || step == schedule_end + cfg.extra_steps)
         {
             let c = ViewsCheck::new(
                 step,
@@ -686,6 +698,23 @@ fn decode_views(
         low = Some(low.map_or(b.clone(), |a| a.add(b)));
     }
     Ok((z_cl, z_t, low.expect("a step has views")))
+}
+
+/// The step after which `stretch_bce` decides: three tenths of `steps` (where the EOT ramp
+/// of the defaults completes).
+fn stretch_step(cfg: &FinetuneConfig) -> usize {
+    (cfg.steps * 3 / 10).max(1)
+}
+
+/// Whether the schedule stretches to twice `steps` (`stretch_bce`): the training views' clean
+/// watermark loss, averaged over the last tenth of `steps`, is above the threshold.
+fn stretch_due(cfg: &FinetuneConfig, log: &[StepLog]) -> bool {
+    if cfg.stretch_bce <= 0.0 || log.is_empty() {
+        return false;
+    }
+    let window = &log[log.len() - (cfg.steps / 10).clamp(1, log.len())..];
+    let mean = window.iter().map(|s| f64::from(s.bce_clean)).sum::<f64>() / window.len() as f64;
+    mean > f64::from(cfg.stretch_bce)
 }
 
 /// Copies every parameter of Gaussian `i` from `src` into `dst`.

@@ -370,6 +370,50 @@ fn extra_steps_stop_once_the_training_views_decode_the_message() {
 }
 
 #[test]
+fn the_schedule_stretches_when_the_training_views_read_the_message_weakly() {
+    let (g, views, _) = setup();
+    let m = model(8);
+    let mk = masks(
+        g.len(),
+        |i| i.is_multiple_of(4),
+        [1.0, 1.0, 0.0, 0.0, 0.0],
+        [0.0; 5],
+    );
+    let msg: Vec<bool> = (0..8).map(|i| i % 3 == 0).collect();
+    let run = |stretch_bce: f32| {
+        let cfg = FinetuneConfig {
+            stretch_bce,
+            ..config(10)
+        };
+        let mut seen = Vec::new();
+        let out = finetune(&g, &mk, &views, &m, &msg, &cfg, |s| {
+            seen.push(s.planned);
+            ControlFlow::Continue(())
+        })
+        .unwrap();
+        (out, seen)
+    };
+    // Off, or a loss already under the threshold: the fixed schedule.
+    for threshold in [0.0, 1e6] {
+        let (out, seen) = run(threshold);
+        assert_eq!(out.log.len(), 10, "stretch_bce {threshold}");
+        assert!(seen.iter().all(|&planned| planned == 10), "{seen:?}");
+    }
+    // Above it (any BCE of a few steps exceeds 1e-6): decided after step 3 of 10, and the
+    // progress says so from that step on.
+    let (out, seen) = run(1e-6);
+    assert_eq!(out.log.len(), 20);
+    assert_eq!(seen[..4], [10, 10, 20, 20]);
+    assert!(seen[3..].iter().all(|&planned| planned == 20));
+    // Up to the decision both runs are the same run; after it the stretched one steps at the
+    // slower cosine's rates.
+    let (fixed, _) = run(0.0);
+    let same = |a: &StepLog, b: &StepLog| a.l_wm == b.l_wm && a.bce_clean == b.bce_clean;
+    assert!(out.log[..4].iter().zip(&fixed.log).all(|(a, b)| same(a, b)));
+    assert!(!same(&out.log[4], &fixed.log[4]));
+}
+
+#[test]
 fn compensators_see_only_the_visual_loss() {
     // Without visual terms L_vis is 0: compensators (full masks) must not move while the
     // carriers take the watermark gradient — nothing of ∂L_wm leaks to VIS.
