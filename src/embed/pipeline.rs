@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 use super::attribution::AttributionRecord;
 use super::calibrate::{ProjectionConfig, calibration_cameras, fit_projection};
 use super::finetune::{
-    FinetuneConfig, FinetuneError, StepLog, View, ViewsCheck, finetune, target_views,
+    FinetuneConfig, FinetuneError, StepLog, StretchCheck, View, ViewsCheck, finetune, target_views,
 };
 use super::mask::MaskConfig;
 use super::sbag::Budget;
@@ -268,6 +268,9 @@ pub struct EmbedReport {
     pub last_step: Option<StepLog>,
     /// How the training views decoded at the last check (`finetune.extra_steps` > 0 only).
     pub views_check: Option<ViewsCheck>,
+    /// Whether the schedule stretched (`finetune.stretch_bce`), and on what loss.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stretch: Option<StretchCheck>,
     pub timings: Timings,
     pub options: EmbedOptions,
     /// The original's mean logits over the training views when `options.reference` is on:
@@ -480,6 +483,7 @@ pub fn embed(
         wm_grad_share_carriers: share,
         last_step: ft.log.last().copied(),
         views_check: ft.check,
+        stretch: ft.stretch,
         timings: Timings {
             targets: t_targets,
             plan: t_plan,

@@ -218,6 +218,10 @@ pub struct QualityRun {
     pub carriers: usize,
     pub compensators: usize,
     pub embed_s: f64,
+    /// Finetuning steps run (`steps`, twice that when the schedule stretched).
+    pub steps: usize,
+    /// What the schedule's stretch measured and decided (`finetune.stretch_bce`).
+    pub stretch: Option<crate::embed::finetune::StretchCheck>,
     /// The embedding's seconds per phase (targets, planning, calibration, finetuning).
     pub phases: crate::embed::pipeline::Timings,
     pub eval_s: f64,
@@ -528,6 +532,8 @@ pub fn run(
                 carriers: out.report.carriers,
                 compensators: out.report.compensators,
                 embed_s,
+                steps: out.report.last_step.map_or(0, |l| l.step),
+                stretch: out.report.stretch,
                 phases: out.report.timings.clone(),
                 eval_s: t1.elapsed().as_secs_f64(),
                 eval,
@@ -566,7 +572,7 @@ pub fn markdown(report: &QualityReport) -> String {
     for c in cols {
         s += &format!(" {c} |");
     }
-    s += " clean detected per view | clean detected (avg logits) | unmarked detected | embed s | targets |\n";
+    s += " clean detected per view | clean detected (avg logits) | unmarked detected | embed s (steps) | targets |\n";
     s += "|---|---|---|---|---|";
     for _ in cols {
         s += "---|";
@@ -597,7 +603,7 @@ pub fn markdown(report: &QualityReport) -> String {
             .map(|t| t.name.as_str())
             .collect();
         s += &format!(
-            " {} | {} | {} | {:.0} | {} |\n",
+            " {} | {} | {} | {:.0} ({}) | {} |\n",
             row("clean").map_or("–".into(), |x| format!(
                 "{:.0} %",
                 100.0 * x.detection_rate_per_view
@@ -613,6 +619,7 @@ pub fn markdown(report: &QualityReport) -> String {
                 "no".to_string()
             }),
             r.embed_s,
+            r.steps,
             if missed.is_empty() {
                 "all met".to_string()
             } else {

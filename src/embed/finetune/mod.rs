@@ -143,7 +143,19 @@ pub struct Finetuned {
     pub log: Vec<StepLog>,
     /// The last check of the training views (`extra_steps` > 0 only).
     pub check: Option<ViewsCheck>,
+    /// What `stretch_bce` measured and decided (when it is on).
+    pub stretch: Option<StretchCheck>,
     pub seconds: f64,
+}
+
+/// The `stretch_bce` decision: the training views' clean watermark loss over the last tenth of
+/// `steps` before `step`, and whether the schedule stretched to `2 · steps`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StretchCheck {
+    pub step: usize,
+    pub bce_clean: f32,
+    pub threshold: f32,
+    pub stretched: bool,
 }
 
 /// Scales the offsets of the Gaussians in `on` from `base` by `f` (quaternions renormalised).
@@ -304,6 +316,7 @@ pub fn finetune(
 
     // Where the schedule ends: `steps`, or twice that once `stretch_bce` stretched it.
     let mut schedule_end = cfg.steps;
+    let mut stretch = None;
     let mut step = 0;
     while step < schedule_end + cfg.extra_steps {
         step += 1;
@@ -603,9 +616,13 @@ pub fn finetune(
             seconds: t0.elapsed().as_secs_f32(),
         };
         log.push(entry);
-        if step == stretch_step(cfg) && stretch_due(cfg, &log) {
-            schedule_end = 2 * cfg.steps;
-            log.last_mut().expect("pushed").planned = schedule_end + cfg.extra_steps;
+        if cfg.stretch_bce > 0.0 && step == stretch_step(cfg) {
+            let c = stretch_check(cfg, &log);
+            if c.stretched {
+                schedule_end = 2 * cfg.steps;
+                log.last_mut().expect("pushed").planned = schedule_end + cfg.extra_steps;
+            }
+            stretch = Some(c);
         }
         if progress(log.last().expect("pushed")).is_break() {
             return Err(FinetuneError::Cancelled { step });
@@ -650,6 +667,7 @@ pub fn finetune(
         wm_grad_share,
         log,
         check,
+        stretch,
         seconds: start.elapsed().as_secs_f64(),
     })
 }
@@ -707,14 +725,17 @@ fn stretch_step(cfg: &FinetuneConfig) -> usize {
 }
 
 /// Whether the schedule stretches to twice `steps` (`stretch_bce`): the training views' clean
-/// watermark loss, averaged over the last tenth of `steps`, is above the threshold.
-fn stretch_due(cfg: &FinetuneConfig, log: &[StepLog]) -> bool {
-    if cfg.stretch_bce <= 0.0 || log.is_empty() {
-        return false;
-    }
+/// watermark loss, averaged over the last tenth of `steps` (`log` is not empty), is above the
+/// threshold.
+fn stretch_check(cfg: &FinetuneConfig, log: &[StepLog]) -> StretchCheck {
     let window = &log[log.len() - (cfg.steps / 10).clamp(1, log.len())..];
     let mean = window.iter().map(|s| f64::from(s.bce_clean)).sum::<f64>() / window.len() as f64;
-    mean > f64::from(cfg.stretch_bce)
+    StretchCheck {
+        step: log.len(),
+        bce_clean: mean as f32,
+        threshold: cfg.stretch_bce,
+        stretched: mean > f64::from(cfg.stretch_bce),
+    }
 }
 
 /// Copies every parameter of Gaussian `i` from `src` into `dst`.

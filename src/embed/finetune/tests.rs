@@ -398,11 +398,19 @@ fn the_schedule_stretches_when_the_training_views_read_the_message_weakly() {
         let (out, seen) = run(threshold);
         assert_eq!(out.log.len(), 10, "stretch_bce {threshold}");
         assert!(seen.iter().all(|&planned| planned == 10), "{seen:?}");
+        // What it measured: the mean clean loss of steps 3 (the last tenth of 10 steps).
+        let c = out.stretch;
+        assert_eq!(c.is_some(), threshold > 0.0);
+        if let Some(c) = c {
+            assert_eq!((c.step, c.stretched), (3, false));
+            assert_eq!(c.bce_clean, out.log[2].bce_clean);
+        }
     }
     // Above it (any BCE of a few steps exceeds 1e-6): decided after step 3 of 10, and the
     // progress says so from that step on.
     let (out, seen) = run(1e-6);
     assert_eq!(out.log.len(), 20);
+    assert!(out.stretch.unwrap().stretched);
     assert_eq!(seen[..4], [10, 10, 20, 20]);
     assert!(seen[3..].iter().all(|&planned| planned == 20));
     // Up to the decision both runs are the same run; after it the stretched one steps at the
