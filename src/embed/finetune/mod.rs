@@ -149,7 +149,7 @@ pub struct Finetuned {
 }
 
 /// The `stretch_bce` decision: the training views' clean watermark loss over the last tenth of
-/// `steps` before `step`, and whether the schedule stretched to `2 · steps`.
+/// `steps` up to and including `step`, and whether the schedule stretched to `2 · steps`.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct StretchCheck {
     pub step: usize,
