@@ -66,9 +66,13 @@ impl JobOptions {
         if !(1..=MAX_STEPS).contains(&embed.finetune.steps) {
             return Err(format!("options.steps must be 1 to {MAX_STEPS}"));
         }
-        if embed.finetune.extra_steps > MAX_STEPS - embed.finetune.steps {
+        if embed.finetune.most_steps() > MAX_STEPS {
+            // A job's worker time is bounded by what it may run, the stretched schedule
+            // included, not by what it asked for.
             return Err(format!(
-                "options.embed.finetune.extra_steps: steps + extra_steps must be at most {MAX_STEPS}"
+                "options.embed.finetune: steps (twice them when stretch_bce > 0, the default) \
+                 + extra_steps must be at most {MAX_STEPS}, got {}",
+                embed.finetune.most_steps()
             ));
         }
         crate::embed::pipeline::check_view_scales(&embed.view_scales)
@@ -220,6 +224,8 @@ mod tests {
                 json!({"steps": 10, "embed": {"finetune": {"extra_steps": MAX_STEPS}}}),
                 "extra_steps",
             ),
+            // The stretched schedule counts: 60 001 steps may run 120 002.
+            (json!({"steps": MAX_STEPS / 2 + 1}), "stretch_bce"),
             (
                 json!({"embed": {"finetune": {"check_every": 0}}}),
                 "check_every",
@@ -252,6 +258,15 @@ mod tests {
             assert!(e.contains(needle), "{e}");
         }
         assert!(serde_json::from_value::<JobOptions>(json!({"stepz": 3})).is_err());
+        // The stretch counts only when it is on.
+        let resolve = |v| {
+            serde_json::from_value::<JobOptions>(v)
+                .unwrap()
+                .resolve(&cfg, 32)
+        };
+        assert!(resolve(json!({"steps": MAX_STEPS / 2})).is_ok());
+        let fixed = json!({"steps": MAX_STEPS, "embed": {"finetune": {"stretch_bce": 0.0}}});
+        assert!(resolve(fixed).is_ok());
     }
 
     #[test]

@@ -206,6 +206,17 @@ fn paper_model_noise_std() -> f32 {
 }
 
 impl FinetuneConfig {
+    /// The most steps this finetuning may take: `steps`, twice that when the schedule may
+    /// stretch (`stretch_bce` > 0), plus `extra_steps` (saturating).
+    pub fn most_steps(&self) -> usize {
+        let schedule = if self.stretch_bce > 0.0 {
+            self.steps.saturating_mul(2)
+        } else {
+            self.steps
+        };
+        schedule.saturating_add(self.extra_steps)
+    }
+
     /// Options of every render of the finetuning.
     pub fn render_options(&self) -> RenderOptions {
         RenderOptions {
