@@ -754,10 +754,13 @@ fn render_cmd(a: &RenderArgs, progress: progress::ProgressMode) -> Result<()> {
     eprintln!("rendering on {}", rasterizer.describe());
     let mut bar = progress::Progress::new(progress);
     bar.phase("render", cams.len() as u64);
+    let scene = rasterizer
+        .prepare(&g, &opts)
+        .context("preparing the scene")?;
     for (k, cam) in cams.iter().enumerate() {
         let t = std::time::Instant::now();
-        let (w, h, image) = rasterizer
-            .render_image(&g, cam, &opts)
+        let (w, h, image) = scene
+            .render_image(cam)
             .with_context(|| format!("rendering {}", cam.name))?;
         let file = a.out.join(format!("{:03}_{}.png", k, safe_name(&cam.name)));
         to_rgb8(w, h, &image)

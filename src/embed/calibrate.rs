@@ -131,10 +131,13 @@ pub fn fit_projection(
     // Each view of the original is rendered once: its features, the gain over the training
     // views (the first `train.len()` calibration cameras) and the nuisance samples of the
     // original all read the same 8-bit renders.
+    let scene = rasterizer
+        .prepare(original, opts)
+        .map_err(render::RenderError::from)?;
     let renders = cams
         .iter()
-        .map(|c| render_rgb8(original, c, opts, rasterizer))
-        .collect::<Result<Vec<_>, _>>()?;
+        .map(|c| rgb8(scene.render_image(c)?))
+        .collect::<Result<Vec<_>, render::RenderError>>()?;
     let features = features_of(model, &renders);
     let fitted = if cfg.matched {
         let gain = gain_of_renders(&renders[..train.len()], model);
@@ -168,7 +171,11 @@ fn render_rgb8(
     opts: &RenderOptions,
     rasterizer: &Rasterizer,
 ) -> Result<image::RgbImage, render::RenderError> {
-    let (w, h, image) = rasterizer.render_image(g, camera, opts)?;
+    rgb8(rasterizer.render_image(g, camera, opts)?)
+}
+
+/// A render (width, height, linear RGB) rounded to 8 bits as a saved image would be.
+fn rgb8((w, h, image): (u32, u32, Vec<[f32; 3]>)) -> Result<image::RgbImage, render::RenderError> {
     Ok(render::to_rgb8(w, h, &image))
 }
 

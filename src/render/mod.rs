@@ -140,6 +140,12 @@ pub(crate) fn check_inputs<T: Real>(
     cam: &Camera,
     opts: &RenderOptions,
 ) -> Result<(), RenderError> {
+    check_camera(cam, opts)?;
+    check_scene(g, opts)
+}
+
+/// The camera and render options' part of [`check_inputs`].
+pub(crate) fn check_camera(cam: &Camera, opts: &RenderOptions) -> Result<(), RenderError> {
     let bad = |why: &str| RenderError::BadCamera {
         name: cam.name.clone(),
         why: why.to_string(),
@@ -166,6 +172,14 @@ pub(crate) fn check_inputs<T: Real>(
     if !(opts.near.is_finite() && opts.near > 0.0) {
         return Err(RenderError::BadNear(opts.near));
     }
+    Ok(())
+}
+
+/// The scene's part of [`check_inputs`] (with the colour override, which is per Gaussian).
+pub(crate) fn check_scene<T: Real>(
+    g: &crate::scene::Gaussians<T>,
+    opts: &RenderOptions,
+) -> Result<(), RenderError> {
     let n = g.len();
     let ok = g.log_scales.len() == n
         && g.rotations.len() == n

@@ -336,10 +336,7 @@ pub fn finetune(
                 picked.push(v);
             }
         }
-        let renders = picked
-            .iter()
-            .map(|&v| renderer.render(&g, v))
-            .collect::<Result<Vec<_>, _>>()?;
+        let renders = renderer.render_views(&g, &picked)?;
         let dims: Vec<(usize, usize)> = picked
             .iter()
             .map(|&v| {
@@ -388,18 +385,8 @@ pub fn finetune(
             attack.apply(&g).expect("σ validated above")
         });
         let wm_renders = match (&noised, &removed) {
-            (Some(n), r) => Some(
-                picked
-                    .iter()
-                    .map(|&v| renderer.rasterise(n, v, r.as_deref()))
-                    .collect::<Result<Vec<_>, _>>()?,
-            ),
-            (None, Some(r)) => Some(
-                picked
-                    .iter()
-                    .map(|&v| renderer.render_without(&g, v, r))
-                    .collect::<Result<Vec<_>, _>>()?,
-            ),
+            (Some(n), r) => Some(renderer.rasterise_views(n, &picked, r.as_deref())?),
+            (None, Some(r)) => Some(renderer.render_views_without(&g, &picked, r)?),
             (None, None) => None,
         };
         let wm_frames = wm_renders.as_ref().unwrap_or(&renders);

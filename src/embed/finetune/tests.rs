@@ -806,11 +806,17 @@ fn removing_gaussians_reads_alike_from_a_replay_and_from_the_rasterizer() {
     let mut rasterised = Renderer::new(&views, &opts, false, Rasterizer::Cpu);
     let mut reached = 0;
     for v in 0..views.len() {
-        let a = replayed.render_without(&g, v, &removed).unwrap();
-        let b = rasterised.render_without(&g, v, &removed).unwrap();
+        let a = replayed
+            .render_views_without(&g, &[v], &removed)
+            .unwrap()
+            .remove(0);
+        let b = rasterised
+            .render_views_without(&g, &[v], &removed)
+            .unwrap()
+            .remove(0);
         assert!(matches!(a, Frame::Removed { .. }));
         assert!(matches!(b, Frame::Masked { .. }));
-        let whole = replayed.render(&g, v).unwrap();
+        let whole = replayed.render_views(&g, &[v]).unwrap().remove(0);
         let changed = whole
             .image()
             .iter()
@@ -874,6 +880,16 @@ fn removing_gaussians_reads_alike_from_a_replay_and_from_the_rasterizer() {
         }
     }
     assert!(reached > 100);
+    // A step's views together: one copy of the scene for all of them, the same frames.
+    let all: Vec<usize> = (0..views.len()).collect();
+    let together = rasterised.render_views_without(&g, &all, &removed).unwrap();
+    for (v, f) in together.iter().enumerate() {
+        let alone = rasterised
+            .render_views_without(&g, &[v], &removed)
+            .unwrap()
+            .remove(0);
+        assert_eq!(f.image(), alone.image(), "view {v}");
+    }
 }
 
 #[test]
@@ -889,9 +905,12 @@ fn a_noisy_copy_of_the_scene_is_rasterised_even_where_views_are_replayed() {
     let removed: Vec<bool> = (0..g.len()).map(|i| i % 4 == 1).collect();
     let mut replayed = Renderer::new(&views, &opts, true, Rasterizer::Cpu);
     for (v, view) in views.iter().enumerate() {
-        let clean = replayed.render(&g, v).unwrap();
+        let clean = replayed.render_views(&g, &[v]).unwrap().remove(0);
         assert!(matches!(clean, Frame::Replayed { .. }));
-        let f = replayed.rasterise(&noisy, v, None).unwrap();
+        let f = replayed
+            .rasterise_views(&noisy, &[v], None)
+            .unwrap()
+            .remove(0);
         let want = render::render(&noisy, &view.camera, &opts).unwrap();
         assert_eq!(
             f.image(),
@@ -917,7 +936,10 @@ fn a_noisy_copy_of_the_scene_is_rasterised_even_where_views_are_replayed() {
         let exp = render::backward(&noisy, &want, &d).unwrap().params;
         assert_eq!(got.sh_dc, exp.sh_dc);
         assert_eq!(got.means, exp.means);
-        let m = replayed.rasterise(&noisy, v, Some(&removed)).unwrap();
+        let m = replayed
+            .rasterise_views(&noisy, &[v], Some(&removed))
+            .unwrap()
+            .remove(0);
         let gm = replayed
             .backward_each(&g, &m, &[&d])
             .unwrap()
@@ -929,7 +951,7 @@ fn a_noisy_copy_of_the_scene_is_rasterised_even_where_views_are_replayed() {
             }
         }
         assert!(matches!(
-            replayed.rasterise(&noisy, v, Some(&removed[1..])),
+            replayed.rasterise_views(&noisy, &[v], Some(&removed[1..])),
             Err(RenderError::BadScene(_))
         ));
     }

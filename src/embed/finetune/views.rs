@@ -7,7 +7,9 @@ use serde::{Deserialize, Serialize};
 use super::FinetuneError;
 use crate::decoder::WatermarkModel;
 use crate::decoder::eval::decode_images;
-use crate::render::gpu::{GpuRendered, Rasterizer};
+use std::sync::Arc;
+
+use crate::render::gpu::{GpuRendered, GpuScene, Rasterizer};
 use crate::render::{self, RenderError, RenderOptions, Rendered, Replay};
 use crate::scene::{Camera, Gaussians};
 
@@ -33,10 +35,11 @@ pub fn target_views(
     opts: &RenderOptions,
     rasterizer: &Rasterizer,
 ) -> Result<Vec<View>, RenderError> {
+    let scene = rasterizer.prepare(original, opts)?;
     cameras
         .iter()
         .map(|c| {
-            let (_, _, image) = rasterizer.render_image(original, c, opts)?;
+            let (_, _, image) = scene.render_image(c)?;
             Ok(View {
                 camera: c.clone(),
                 target: image.iter().map(|p| p.map(|v| v.clamp(0.0, 1.0))).collect(),
@@ -78,10 +81,11 @@ pub(crate) fn cameras_logits<'a>(
     opts: &RenderOptions,
     rasterizer: &Rasterizer,
 ) -> Result<Vec<f32>, FinetuneError> {
+    let scene = rasterizer.prepare(g, opts).map_err(RenderError::from)?;
     let images = cameras
         .into_iter()
         .map(|c| {
-            let (w, h, image) = rasterizer.render_image(g, c, opts)?;
+            let (w, h, image) = scene.render_image(c)?;
             Ok(render::to_rgb8(w, h, &image))
         })
         .collect::<Result<Vec<_>, RenderError>>()?;
@@ -107,8 +111,9 @@ impl ViewsCheck {
 /// one MSE over all views), through `renderer` (replayed where recorded: the same images).
 pub(super) fn views_psnr(renderer: &mut Renderer, g: &Gaussians) -> Result<f32, RenderError> {
     let (mut sq, mut n) = (0.0f64, 0usize);
+    let up = renderer.upload(g)?;
     for v in 0..renderer.views.len() {
-        let frame = renderer.render(g, v)?;
+        let frame = renderer.render_with(g, v, up.as_ref())?;
         let image = frame.image();
         for (p, q) in image.iter().zip(&renderer.views[v].target) {
             for c in 0..3 {
@@ -142,7 +147,7 @@ pub(super) enum Frame {
     /// Gaussians made transparent (what `frame` rendered and back-propagates through).
     Masked {
         frame: Box<Frame>,
-        scene: Box<Gaussians>,
+        scene: Arc<Gaussians>,
     },
 }
 
@@ -187,9 +192,40 @@ impl<'a> Renderer<'a> {
         }
     }
 
-    pub fn render(&mut self, g: &Gaussians, v: usize) -> Result<Frame, RenderError> {
+    /// Views `vs` of `g`: replayed where recorded, otherwise rasterised (on the GPU from one
+    /// upload of `g`).
+    pub fn render_views(&mut self, g: &Gaussians, vs: &[usize]) -> Result<Vec<Frame>, RenderError> {
+        let up = self.upload(g)?;
+        vs.iter()
+            .map(|&v| self.render_with(g, v, up.as_ref()))
+            .collect()
+    }
+
+    /// `g` uploaded for the GPU's renders of it (`None` on the CPU).
+    fn upload(&self, g: &Gaussians) -> Result<Option<GpuScene>, RenderError> {
+        Ok(match &self.rasterizer {
+            Rasterizer::Gpu(gpu) => Some(gpu.upload(g, self.opts)?),
+            Rasterizer::Cpu => None,
+        })
+    }
+
+    /// View `v` of `g`; on the GPU from `up`, `g`'s upload ([`Self::upload`]).
+    fn render_with(
+        &mut self,
+        g: &Gaussians,
+        v: usize,
+        up: Option<&GpuScene>,
+    ) -> Result<Frame, RenderError> {
         if let Rasterizer::Gpu(gpu) = &self.rasterizer {
-            let r = gpu.render(g, &self.views[v].camera, self.opts)?;
+            let fresh;
+            let scene = match up {
+                Some(s) => s,
+                None => {
+                    fresh = gpu.upload(g, self.opts)?;
+                    &fresh
+                }
+            };
+            let r = gpu.render_uploaded(scene, &self.views[v].camera, self.opts)?;
             return Ok(Frame::Gpu(Box::new(r)));
         }
         if let Some(r) = self.replay(g, v)? {
@@ -226,76 +262,82 @@ impl<'a> Renderer<'a> {
         Ok(replays[v].as_ref())
     }
 
-    /// View `v` of `g` without the Gaussians marked in `removed` (scene-indexed): recomposited
-    /// from its replay where there is one, otherwise rasterised with them transparent.
-    pub fn render_without(
+    /// Views `vs` of `g` without the Gaussians marked in `removed` (scene-indexed): each
+    /// recomposited from its replay where there is one, otherwise rasterised with them
+    /// transparent (one copy of the scene, and on the GPU one upload, for all such views).
+    pub fn render_views_without(
         &mut self,
         g: &Gaussians,
-        v: usize,
+        vs: &[usize],
         removed: &[bool],
-    ) -> Result<Frame, RenderError> {
-        if let Some(r) = self.replay(g, v)? {
-            let replay = r.without(removed)?;
-            let image = replay.render(g)?;
-            return Ok(Frame::Removed {
-                replay: Box::new(replay),
-                image,
+    ) -> Result<Vec<Frame>, RenderError> {
+        check_removal(removed, g)?;
+        let mut masked: Option<(Arc<Gaussians>, Option<GpuScene>)> = None;
+        let mut frames = Vec::with_capacity(vs.len());
+        for &v in vs {
+            if let Some(r) = self.replay(g, v)? {
+                let replay = r.without(removed)?;
+                let image = replay.render(g)?;
+                frames.push(Frame::Removed {
+                    replay: Box::new(replay),
+                    image,
+                });
+                continue;
+            }
+            // No replay of view `v` exists (or may be recorded): this rasterises.
+            if masked.is_none() {
+                let mut m = g.clone();
+                make_transparent(&mut m, removed);
+                let up = self.upload(&m)?;
+                masked = Some((Arc::new(m), up));
+            }
+            let (scene, up) = masked.as_ref().expect("set above");
+            let frame = self.render_with(scene, v, up.as_ref())?;
+            frames.push(Frame::Masked {
+                frame: Box::new(frame),
+                scene: scene.clone(),
             });
         }
-        if removed.len() != g.len() {
-            return Err(RenderError::BadScene(format!(
-                "a removal mask of {} Gaussians for a scene of {}",
-                removed.len(),
-                g.len()
-            )));
-        }
-        let mut masked = g.clone();
-        make_transparent(&mut masked, removed);
-        // No replay of view `v` exists (or may be recorded): this rasterises.
-        let frame = self.render(&masked, v)?;
-        Ok(Frame::Masked {
-            frame: Box::new(frame),
-            scene: Box::new(masked),
-        })
+        Ok(frames)
     }
 
-    /// View `v` of a perturbed copy `scene` of the finetuned scene (same Gaussians, moved),
+    /// Views `vs` of a perturbed copy `scene` of the finetuned scene (same Gaussians, moved),
     /// rasterised whatever the replays (they hold the unperturbed geometry), with the
-    /// Gaussians marked in `removed` made transparent. Back-propagating through the frame
-    /// gives ∂L/∂θ at the perturbed parameters.
-    pub fn rasterise(
+    /// Gaussians marked in `removed` made transparent. Back-propagating through a frame gives
+    /// ∂L/∂θ at the perturbed parameters.
+    pub fn rasterise_views(
         &mut self,
         scene: &Gaussians,
-        v: usize,
+        vs: &[usize],
         removed: Option<&[bool]>,
-    ) -> Result<Frame, RenderError> {
+    ) -> Result<Vec<Frame>, RenderError> {
         let mut masked = scene.clone();
         if let Some(removed) = removed {
-            if removed.len() != scene.len() {
-                return Err(RenderError::BadScene(format!(
-                    "a removal mask of {} Gaussians for a scene of {}",
-                    removed.len(),
-                    scene.len()
-                )));
-            }
+            check_removal(removed, scene)?;
             make_transparent(&mut masked, removed);
         }
-        let frame = match &self.rasterizer {
-            Rasterizer::Gpu(gpu) => Frame::Gpu(Box::new(gpu.render(
-                &masked,
-                &self.views[v].camera,
-                self.opts,
-            )?)),
-            Rasterizer::Cpu => Frame::Raster(Box::new(render::render(
-                &masked,
-                &self.views[v].camera,
-                self.opts,
-            )?)),
-        };
-        Ok(Frame::Masked {
-            frame: Box::new(frame),
-            scene: Box::new(masked),
-        })
+        let up = self.upload(&masked)?;
+        let masked = Arc::new(masked);
+        vs.iter()
+            .map(|&v| {
+                let frame = match &self.rasterizer {
+                    Rasterizer::Gpu(gpu) => Frame::Gpu(Box::new(gpu.render_uploaded(
+                        up.as_ref().expect("uploaded for the GPU"),
+                        &self.views[v].camera,
+                        self.opts,
+                    )?)),
+                    Rasterizer::Cpu => Frame::Raster(Box::new(render::render(
+                        &masked,
+                        &self.views[v].camera,
+                        self.opts,
+                    )?)),
+                };
+                Ok(Frame::Masked {
+                    frame: Box::new(frame),
+                    scene: masked.clone(),
+                })
+            })
+            .collect()
     }
 
     /// ∂L/∂θ from each ∂L/∂image of `frame` in `d_images` (scene-shaped; a replayed view
@@ -331,6 +373,18 @@ impl<'a> Renderer<'a> {
             Frame::Masked { frame, scene } => self.backward_each(scene, frame, d_images),
         }
     }
+}
+
+/// A removal mask must mark each Gaussian of the scene.
+fn check_removal(removed: &[bool], g: &Gaussians) -> Result<(), RenderError> {
+    if removed.len() != g.len() {
+        return Err(RenderError::BadScene(format!(
+            "a removal mask of {} Gaussians for a scene of {}",
+            removed.len(),
+            g.len()
+        )));
+    }
+    Ok(())
 }
 
 /// Makes the Gaussians marked in `removed` transparent: α = sigmoid(−40) ≈ 4e-18, far below

@@ -3,7 +3,7 @@
 //! (per Gaussian, through the projection) to the CPU reference's [`Gradients`].
 
 use super::chunk::Sliced;
-use super::{GpuError, GpuRendered, GpuRenderer, GpuState, bind, block_on};
+use super::{GpuError, GpuRendered, GpuRenderer, GpuState, bind};
 use crate::render::{Gradients, RenderError};
 use crate::scene::Gaussians;
 
@@ -35,14 +35,7 @@ impl GpuRenderer {
             .into());
         }
         self.injected_fault()?;
-        let oom = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
-        let invalid = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let out = self.backward_checked(st, d_image);
-        let errors = [block_on(invalid.pop()), block_on(oom.pop())];
-        if let Some(e) = errors.into_iter().flatten().next() {
-            return Err(GpuError::Run(e.to_string()));
-        }
-        let (grads, aux) = out?;
+        let (grads, aux) = self.scoped(|| self.backward_checked(st, d_image))?;
         let n = g.len();
         let gs = 14 + st.rest_len;
         let z3 = [0.0f32; 3];

@@ -3,7 +3,7 @@
 
 use std::sync::Arc;
 
-use super::{AdapterChoice, GpuError, GpuRenderer};
+use super::{AdapterChoice, GpuError, GpuRenderer, GpuScene};
 use crate::render::RenderOptions;
 use crate::scene::{Camera, Gaussians};
 
@@ -88,7 +88,8 @@ impl Rasterizer {
         }
     }
 
-    /// The image of `g` through `camera`: (width, height, linear RGB, not clamped).
+    /// The image of `g` through `camera`: (width, height, linear RGB, not clamped). Several
+    /// views of one scene: [`Self::prepare`] it once.
     pub fn render_image(
         &self,
         g: &Gaussians<f32>,
@@ -102,6 +103,46 @@ impl Rasterizer {
             }
             Self::Gpu(gpu) => {
                 let r = gpu.render(g, camera, opts)?;
+                Ok((r.width, r.height, r.image))
+            }
+        }
+    }
+
+    /// `g` made ready for renders through many cameras with `opts`: on the GPU packed and
+    /// uploaded once ([`GpuRenderer::upload`]), on the CPU as it is.
+    pub fn prepare<'a>(
+        &'a self,
+        g: &'a Gaussians<f32>,
+        opts: &'a RenderOptions,
+    ) -> Result<PreparedScene<'a>, GpuError> {
+        Ok(PreparedScene {
+            g,
+            opts,
+            gpu: match self {
+                Self::Cpu => None,
+                Self::Gpu(gpu) => Some((gpu.as_ref(), gpu.upload(g, opts)?)),
+            },
+        })
+    }
+}
+
+/// A scene ready to render through many cameras ([`Rasterizer::prepare`]).
+pub struct PreparedScene<'a> {
+    g: &'a Gaussians<f32>,
+    opts: &'a RenderOptions,
+    gpu: Option<(&'a GpuRenderer, GpuScene)>,
+}
+
+impl PreparedScene<'_> {
+    /// [`Rasterizer::render_image`] of the prepared scene.
+    pub fn render_image(&self, camera: &Camera) -> Result<(u32, u32, Vec<[f32; 3]>), GpuError> {
+        match &self.gpu {
+            None => {
+                let r = crate::render::render(self.g, camera, self.opts)?;
+                Ok((r.width, r.height, r.image))
+            }
+            Some((gpu, scene)) => {
+                let r = gpu.render_uploaded(scene, camera, self.opts)?;
                 Ok((r.width, r.height, r.image))
             }
         }

@@ -18,11 +18,11 @@ mod choice;
 mod chunk;
 mod sort;
 
-pub use choice::{DeviceRequest, Rasterizer, shared};
+pub use choice::{DeviceRequest, PreparedScene, Rasterizer, shared};
 
 use wgpu::util::DeviceExt;
 
-use super::{ALPHA_MIN, RenderError, RenderOptions, TILE, check_inputs};
+use super::{ALPHA_MIN, RenderError, RenderOptions, TILE, check_camera, check_scene};
 use crate::scene::{Camera, Gaussians};
 
 /// Why the GPU path could not run.
@@ -109,6 +109,43 @@ impl std::fmt::Debug for GpuRendered {
             .field("height", &self.height)
             .field("tile_entries", &self.tile_entries)
             .finish_non_exhaustive()
+    }
+}
+
+/// A scene packed and uploaded once for several renders ([`GpuRenderer::upload`]): each
+/// [`GpuRenderer::render`] packs and uploads its scene (236 B a Gaussian at SH 3), which for
+/// many views of one scene — a job's targets and calibration, a step's views, `splatmark
+/// render` — is host work and bus traffic repeated for nothing.
+pub struct GpuScene {
+    n: u32,
+    rest_len: usize,
+    /// The scene's SH degree (a render may use fewer).
+    sh_degree: u8,
+    /// Floats a Gaussian in `params` (14 + `rest_len`, + 3 with a colour override).
+    stride: u32,
+    /// Whether the upload carries a colour override per Gaussian (`RenderOptions::colors`).
+    overrides: bool,
+    params: wgpu::Buffer,
+}
+
+impl std::fmt::Debug for GpuScene {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("GpuScene")
+            .field("gaussians", &self.n)
+            .field("sh_degree", &self.sh_degree)
+            .field("overrides", &self.overrides)
+            .finish_non_exhaustive()
+    }
+}
+
+impl GpuScene {
+    /// Gaussians uploaded.
+    pub fn len(&self) -> usize {
+        self.n as usize
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.n == 0
     }
 }
 
@@ -521,38 +558,25 @@ impl GpuRenderer {
 
     /// Renders `g` through `camera` (the CPU reference's [`super::render`], on this device).
     /// A failure of the device (validation, out of memory, lost) is an error, not a panic.
+    /// Several views of one scene: [`Self::upload`] it once and [`Self::render_uploaded`].
     pub fn render(
         &self,
         g: &Gaussians<f32>,
         camera: &Camera,
         opts: &RenderOptions,
     ) -> Result<GpuRendered, GpuError> {
-        check_inputs(g, camera, opts)?;
-        self.injected_fault()?;
-        let oom = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
-        let invalid = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let out = self.render_checked(g, camera, opts);
-        let errors = [block_on(invalid.pop()), block_on(oom.pop())];
-        match errors.into_iter().flatten().next() {
-            Some(e) => Err(GpuError::Run(e.to_string())),
-            None => out,
-        }
+        check_camera(camera, opts)?;
+        let scene = self.upload(g, opts)?;
+        self.render_uploaded(&scene, camera, opts)
     }
 
-    fn render_checked(
-        &self,
-        g: &Gaussians<f32>,
-        camera: &Camera,
-        opts: &RenderOptions,
-    ) -> Result<GpuRendered, GpuError> {
+    /// Packs `g` — with `opts.colors`, its colour override, if any; the other options are
+    /// the renders' — and uploads it for [`Self::render_uploaded`].
+    pub fn upload(&self, g: &Gaussians<f32>, opts: &RenderOptions) -> Result<GpuScene, GpuError> {
+        check_scene(g, opts)?;
         let n = u32::try_from(g.len())
             .map_err(|_| RenderError::BadScene("more than 2³² Gaussians".into()))?;
-        let (w, h) = (camera.width, camera.height);
         let overrides = opts.colors.as_deref();
-        let sh_degree = match overrides {
-            Some(_) => 0,
-            None => opts.sh_degree.map_or(g.sh_degree, |d| d.min(g.sh_degree)),
-        };
         let rest = g.rest_len();
         let stride = 14 + rest + if overrides.is_some() { 3 } else { 0 };
         let mut params = Vec::with_capacity(g.len() * stride);
@@ -567,15 +591,82 @@ impl GpuRenderer {
                 params.extend_from_slice(&c[i]);
             }
         }
+        let params = self.scoped(|| {
+            let buf = self.sliced_storage("params", params.len() as u64 * 4)?;
+            self.queue
+                .write_buffer(&buf, 0, bytemuck::cast_slice(&params));
+            Ok(buf)
+        })?;
+        Ok(GpuScene {
+            n,
+            rest_len: rest,
+            sh_degree: g.sh_degree,
+            stride: stride as u32,
+            overrides: overrides.is_some(),
+            params,
+        })
+    }
+
+    /// Renders an uploaded scene through `camera`: the image [`Self::render`] gives of the
+    /// scene `scene` was uploaded from. The colour override is the upload's: `opts.colors`
+    /// must be set exactly when the upload's was (its values are not read again).
+    pub fn render_uploaded(
+        &self,
+        scene: &GpuScene,
+        camera: &Camera,
+        opts: &RenderOptions,
+    ) -> Result<GpuRendered, GpuError> {
+        check_camera(camera, opts)?;
+        if opts.colors.is_some() != scene.overrides {
+            return Err(RenderError::BadScene(format!(
+                "the scene was uploaded {} a colour override, the render asks {} one",
+                if scene.overrides { "with" } else { "without" },
+                if opts.colors.is_some() {
+                    "for"
+                } else {
+                    "for none of"
+                },
+            ))
+            .into());
+        }
+        self.injected_fault()?;
+        self.scoped(|| self.render_checked(scene, camera, opts))
+    }
+
+    /// Runs `f` inside error scopes: a failure of the device (validation, out of memory) in
+    /// it is an error, not a panic.
+    fn scoped<T>(&self, f: impl FnOnce() -> Result<T, GpuError>) -> Result<T, GpuError> {
+        let oom = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
+        let invalid = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let out = f();
+        let errors = [block_on(invalid.pop()), block_on(oom.pop())];
+        match errors.into_iter().flatten().next() {
+            Some(e) => Err(GpuError::Run(e.to_string())),
+            None => out,
+        }
+    }
+
+    fn render_checked(
+        &self,
+        scene: &GpuScene,
+        camera: &Camera,
+        opts: &RenderOptions,
+    ) -> Result<GpuRendered, GpuError> {
+        let n = scene.n;
+        let (w, h) = (camera.width, camera.height);
+        let sh_degree = if scene.overrides {
+            0
+        } else {
+            opts.sh_degree
+                .map_or(scene.sh_degree, |d| d.min(scene.sh_degree))
+        };
+        let stride = scene.stride;
         let tiles_x = (w as usize).div_ceil(TILE) as u32;
         let tiles_y = (h as usize).div_ceil(TILE) as u32;
         let n_tiles = tiles_x * tiles_y;
-        let cam_bytes = camera_uniform(camera, opts, n, sh_degree, stride as u32, tiles_x, tiles_y);
+        let cam_bytes = camera_uniform(camera, opts, n, sh_degree, stride, tiles_x, tiles_y);
         let cam_buf = self.uniform(&cam_bytes);
-
-        let param_buf = self.sliced_storage("params", params.len() as u64 * 4)?;
-        self.queue
-            .write_buffer(&param_buf, 0, bytemuck::cast_slice(&params));
+        let param_buf = &scene.params;
         let splats = self.storage("splats", u64::from(n) * 48)?;
         let tiles = self.storage("tiles", u64::from(n) * 16)?;
         let counts = self.storage("counts", (u64::from(n) + 1) * 4)?;
@@ -591,8 +682,8 @@ impl GpuRenderer {
             &[(0, &cam_buf), (2, &splats), (3, &tiles), (4, &counts)],
             &[chunk::Sliced {
                 binding: 1,
-                buffer: &param_buf,
-                floats: stride as u32,
+                buffer: param_buf,
+                floats: stride,
             }],
             &mut keep,
         )?;
@@ -692,11 +783,11 @@ impl GpuRenderer {
                 n,
                 total,
                 tiles: (tiles_x, tiles_y),
-                rest_len: rest,
-                sh_degree: g.sh_degree,
-                stride: stride as u32,
+                rest_len: scene.rest_len,
+                sh_degree: scene.sh_degree,
+                stride,
                 cam: cam_buf,
-                params: param_buf,
+                params: param_buf.clone(),
                 splats,
                 offsets: counts,
                 vals: sorted.val,

@@ -461,6 +461,60 @@ fn the_gpu_backward_is_deterministic() {
 }
 
 #[test]
+fn one_upload_renders_every_view_and_back_propagates_as_fresh_uploads_do() {
+    let g = scene(37, 1500, 3, 1.0, (-4.0, -2.5));
+    let r = gpu();
+    let opts = RenderOptions::default();
+    let up = r.upload(&g, &opts).unwrap();
+    assert_eq!(up.len(), g.len());
+    let d_image = vec![[0.01f32, -0.02, 0.03]; 48 * 40];
+    for (w, h, f) in [(48, 40, 50.0), (48, 40, 80.0), (64, 64, 60.0)] {
+        let cam = camera(w, h, f);
+        let fresh = r.render(&g, &cam, &opts).unwrap();
+        let shared = r.render_uploaded(&up, &cam, &opts).unwrap();
+        assert_eq!(shared.image, fresh.image, "{w}×{h}, f {f}");
+        assert_eq!(shared.final_t, fresh.final_t);
+        if (w, h) == (48, 40) {
+            let a = r.backward(&g, &fresh, &d_image).unwrap();
+            let b = r.backward(&g, &shared, &d_image).unwrap();
+            assert_eq!(a.params.means, b.params.means);
+            assert_eq!(a.params.sh_rest, b.params.sh_rest);
+            assert_eq!(a.blend_weights, b.blend_weights);
+        }
+    }
+    // Another SH degree is a render option: the same upload serves it.
+    let sh1 = RenderOptions {
+        sh_degree: Some(1),
+        ..RenderOptions::default()
+    };
+    let cam = camera(48, 40, 50.0);
+    assert_eq!(
+        r.render_uploaded(&up, &cam, &sh1).unwrap().image,
+        r.render(&g, &cam, &sh1).unwrap().image
+    );
+    // The colour override is the upload's: a render that asks for one of an upload without
+    // (or the reverse) is a typed error, not a render of other colours.
+    let colours = RenderOptions {
+        colors: Some(vec![[0.2, 0.5, 0.9]; g.len()].into()),
+        ..RenderOptions::default()
+    };
+    for (upload, render_with) in [(&opts, &colours), (&colours, &opts)] {
+        let up = r.upload(&g, upload).unwrap();
+        match r.render_uploaded(&up, &cam, render_with) {
+            Err(GpuError::Render(RenderError::BadScene(why))) => {
+                assert!(why.contains("colour override"), "{why}")
+            }
+            other => panic!("expected a scene error, got {:?}", other.map(|_| ())),
+        }
+    }
+    let up = r.upload(&g, &colours).unwrap();
+    assert_eq!(
+        r.render_uploaded(&up, &cam, &colours).unwrap().image,
+        r.render(&g, &cam, &colours).unwrap().image
+    );
+}
+
+#[test]
 fn chunk_slices_start_aligned_fit_one_binding_and_cover_every_gaussian() {
     for (align, floats, limit) in [
         (256u64, 59u64, 1u64 << 27),
