@@ -95,10 +95,12 @@ run)
   SPLATMARK_SCENES="$PWD/$dir/scenes" timeout 240 "$dir/render-bench" --quick "${filter[@]}" 2>&1 |
     tee "$out/render-bench.md" || echo "(render benchmark stopped: see above)"
   echo
-  echo "### Donut embedding, 32 bits, the service's defaults (24 orbit views at 512²)"
+  echo "### Donut embedding, 32 bits, the CLI's defaults (the service's: 48 orbit views at 512²)"
   echo
-  echo "| device | seconds | bits on the last step's views | PSNR (last step) |"
-  echo "|---|---|---|---|"
+  echo "Finetuning's steps by part (s, summed; report timings.steps): where a step's time goes."
+  echo
+  echo "| device | seconds | bits on the last step's views | PSNR (last step) | finetuning s | render | watermark | visual | backward | update |"
+  echo "|---|---|---|---|---|---|---|---|---|---|"
   for device in wgpu cpu; do
     [ -f "$dir/scenes/donut/fused.ply" ] || break
     t0=$(date +%s.%N)
@@ -111,11 +113,16 @@ report = json.load(open(sys.argv[1]))
 last = report.get("last_step") or {}
 acc = last.get("bit_acc_clean")
 psnr = last.get("psnr")
+timings = report.get("timings") or {}
+steps = timings.get("steps") or {}
+parts = " | ".join(f"{steps[k]:.1f}" if k in steps else "?"
+                   for k in ("render", "watermark", "visual", "backward", "update"))
 print(f"| {sys.argv[2]} | {float(sys.argv[4]) - float(sys.argv[3]):.0f} | "
-      f"{'?' if acc is None else f'{100 * acc:.1f} %'} | {'?' if psnr is None else f'{psnr:.2f} dB'} |")
+      f"{'?' if acc is None else f'{100 * acc:.1f} %'} | {'?' if psnr is None else f'{psnr:.2f} dB'} | "
+      f"{timings.get('finetune', 0):.1f} | {parts} |")
 EOF
     else
-      echo "| $device | failed or over 200 s (see donut-$device.log) | | |"
+      echo "| $device | failed or over 200 s (see donut-$device.log) | | | | | | | | |"
       tail -3 "$out/donut-$device.log" || true
     fi
   done

@@ -277,14 +277,21 @@ pub(crate) fn embed_cmd(a: &EmbedArgs, progress: ProgressMode) -> Result<()> {
     })?;
     bar.finish();
     let r = &out.report;
+    let st = &r.timings.steps;
     eprintln!(
-        "{} carriers + {} compensators (budget B = {}, {} pruned); carriers hold {:.1} % of the watermark gradient; {:.1} s",
+        "{} carriers + {} compensators (budget B = {}, {} pruned); carriers hold {:.1} % of the watermark gradient; {:.1} s (finetuning {:.1} s: render {:.1}, watermark {:.1}, visual {:.1}, backward {:.1}, update {:.1})",
         r.carriers,
         r.compensators,
         r.budget.b,
         r.pruned,
         100.0 * r.wm_grad_share_carriers,
-        r.timings.total
+        r.timings.total,
+        r.timings.finetune,
+        st.render,
+        st.watermark,
+        st.visual,
+        st.backward,
+        st.update
     );
     write_atomic(&a.out, |f| {
         write_ply(&out.scene, std::io::BufWriter::new(f))?;

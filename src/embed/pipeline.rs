@@ -242,6 +242,9 @@ pub struct Timings {
     pub calibrate: f64,
     /// The finetuning steps themselves.
     pub finetune: f64,
+    /// The finetuning steps' time by part (render, watermark, visual, backward, update).
+    #[serde(default)]
+    pub steps: crate::embed::finetune::StepPhases,
     pub total: f64,
 }
 
@@ -489,6 +492,7 @@ pub fn embed(
             plan: t_plan,
             calibrate: t_calibrate,
             finetune: t_ft,
+            steps: ft.phases,
             total: t_all.elapsed().as_secs_f64(),
         },
         options: opts.clone(),

@@ -503,13 +503,20 @@ pub fn run(
             })?;
             let embed_s = t0.elapsed().as_secs_f64();
             let t = &out.report.timings;
+            let st = &t.steps;
             log.line(&format!(
                 "  embedded in {embed_s:.1} s (targets {:.1}, plan {:.1}, calibrate {:.1}, \
-                 finetune {:.1}); evaluating on {} unseen views…",
+                 finetune {:.1}: render {:.1}, watermark {:.1}, visual {:.1}, backward {:.1}, \
+                 update {:.1}); evaluating on {} unseen views…",
                 t.targets,
                 t.plan,
                 t.calibrate,
                 t.finetune,
+                st.render,
+                st.watermark,
+                st.visual,
+                st.backward,
+                st.update,
                 unseen.len()
             ));
             let t1 = Instant::now();

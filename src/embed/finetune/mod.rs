@@ -134,6 +134,32 @@ fn one() -> f32 {
     1.0
 }
 
+/// Seconds a finetuning's steps spent in each of their parts, summed over the steps: where a
+/// step's time goes on the rasterizer that ran it (the GPU path's images and ∂L/∂image cross
+/// the host between `render`, `watermark`, `visual` and `backward`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct StepPhases {
+    /// The step's views rendered (or replayed), and the EOT copy's.
+    pub render: f64,
+    /// The decoder on the views (clean and attacked), L_wm and its ∂L/∂image, on burn.
+    pub watermark: f64,
+    /// L_vis and its ∂L/∂image (closed form, on the host) and the step's PSNR.
+    pub visual: f64,
+    /// Both routes' ∂L/∂image back through the rasterizer to ∂L/∂θ.
+    pub backward: f64,
+    /// Gating, the optimiser step, the fidelity bound and the `extra_steps` checks.
+    pub update: f64,
+}
+
+impl StepPhases {
+    /// Adds the time since `*mark` to `field` and moves the mark to now.
+    fn lap(field: &mut f64, mark: &mut Instant) {
+        let now = Instant::now();
+        *field += now.duration_since(*mark).as_secs_f64();
+        *mark = now;
+    }
+}
+
 /// What finetuning produced.
 #[derive(Clone, Debug)]
 pub struct Finetuned {
@@ -145,6 +171,8 @@ pub struct Finetuned {
     pub check: Option<ViewsCheck>,
     /// What `stretch_bce` measured and decided (when it is on).
     pub stretch: Option<StretchCheck>,
+    /// Where the steps' time went.
+    pub phases: StepPhases,
     pub seconds: f64,
 }
 
@@ -318,9 +346,11 @@ pub fn finetune(
     let mut schedule_end = cfg.steps;
     let mut stretch = None;
     let mut step = 0;
+    let mut phases = StepPhases::default();
     while step < schedule_end + cfg.extra_steps {
         step += 1;
         let t0 = Instant::now();
+        let mut mark = t0;
         // Views of this step: walk shuffled epochs.
         let mut picked = Vec::with_capacity(per_step);
         while picked.len() < per_step {
@@ -390,6 +420,7 @@ pub fn finetune(
             (None, None) => None,
         };
         let wm_frames = wm_renders.as_ref().unwrap_or(&renders);
+        StepPhases::lap(&mut phases.render, &mut mark);
         let attack = match attack {
             DiffAttack::Chain(c) if c.is_empty() => None,
             a => Some(a),
@@ -421,6 +452,7 @@ pub fn finetune(
             .mul_scalar(w.wm_clean)
             .add(bce_t.clone().mul_scalar(w.wm_eot))
             .add(low.div_scalar(nv).mul_scalar(w.wav_low));
+        StepPhases::lap(&mut phases.watermark, &mut mark);
 
         // L_vis in closed form, view by view (its own gradient, apart from L_wm's); saved
         // renders are clamped, so it compares what a viewer sees.
@@ -443,6 +475,7 @@ pub fn finetune(
             }
             n_px += r.image().len() * 3;
         }
+        StepPhases::lap(&mut phases.visual, &mut mark);
 
         let scalar = |t: &Tensor<1>| t.clone().detach().into_scalar::<f32>();
         let (lw, lv) = (
@@ -488,21 +521,27 @@ pub fn finetune(
             }
         };
 
+        let d_wms: Vec<Vec<[f32; 3]>> = renders
+            .iter()
+            .enumerate()
+            .map(|(k, r)| image_grad(&xs[k], &gw, r.image().len()))
+            .collect();
+        // (burn runs lazily on a GPU: the decoder's time shows where its results are read.)
+        StepPhases::lap(&mut phases.watermark, &mut mark);
+
         // Two backward passes through each render; sum over the step's views.
         let mut grad_wm = g.cast(|_| 0.0f32);
         let mut grad_vis = grad_wm.clone();
         let f = (f64::from(vis_scale) / nv) as f32;
-        for (k, r) in renders.iter().enumerate() {
-            let n = r.image().len();
-            let d_wm = image_grad(&xs[k], &gw, n);
+        for (k, (r, d_wm)) in renders.iter().zip(&d_wms).enumerate() {
             let d_vis: Vec<[f32; 3]> = vis[k].1.iter().map(|d| d.map(|v| v * f)).collect();
             let [by_wm, by_vis]: [Gaussians; 2] = match &wm_renders {
                 None => renderer
-                    .backward_each(&g, r, &[&d_wm, &d_vis])?
+                    .backward_each(&g, r, &[d_wm, &d_vis])?
                     .try_into()
                     .expect("two gradients"),
                 Some(wm) => {
-                    let mut by_wm = renderer.backward_each(&g, &wm[k], &[&d_wm])?;
+                    let mut by_wm = renderer.backward_each(&g, &wm[k], &[d_wm])?;
                     let mut by_vis = renderer.backward_each(&g, r, &[&d_vis])?;
                     [
                         by_wm.pop().expect("one gradient"),
@@ -513,6 +552,7 @@ pub fn finetune(
             add_into(&mut grad_wm, &by_wm);
             add_into(&mut grad_vis, &by_vis);
         }
+        StepPhases::lap(&mut phases.backward, &mut mark);
         for (s, n) in wm_norm_sum
             .iter_mut()
             .zip(grad_norms(&grad_wm, geometry_fixed))
@@ -626,9 +666,11 @@ pub fn finetune(
             );
             check = Some(c);
             if c.matches == c.bits {
+                StepPhases::lap(&mut phases.update, &mut mark);
                 break;
             }
         }
+        StepPhases::lap(&mut phases.update, &mut mark);
     }
 
     // The per-step bound acts on the renders before each update; hold it exactly at the end:
@@ -655,6 +697,7 @@ pub fn finetune(
         log,
         check,
         stretch,
+        phases,
         seconds: start.elapsed().as_secs_f64(),
     })
 }
