@@ -21,6 +21,10 @@ use splatmark::verify::message::parse_hex;
 mod common;
 use common::*;
 
+/// A job that runs until it is stopped: the most steps a job may ask for (its schedule may
+/// stretch to twice them, `finetune.stretch_bce`).
+const LONG_JOB_STEPS: usize = splatmark::queue::spec::MAX_STEPS / 2;
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn upload_watermark_download_render_verify_round_trip() {
     // A false-positive rate of 1e-3 (threshold 26 of 32 matching bits) instead of the default
@@ -387,7 +391,7 @@ async fn a_job_running_at_shutdown_goes_back_to_the_queue_at_once() {
     let master = MasterKey::generate().to_hex();
     let mut t = TestApp::boot(dir, cfg.clone(), master.clone(), None).await;
     let k = t.keys().await;
-    let (_, job_id) = t.small_object_job(&k.owner, 100_000).await;
+    let (_, job_id) = t.small_object_job(&k.owner, LONG_JOB_STEPS).await;
     // Wait until the worker is inside the finetuning loop.
     let j = t
         .wait_job_until(&k.owner, &job_id, Duration::from_secs(300), |j| {
@@ -598,7 +602,7 @@ async fn a_backup_of_a_live_server_mid_job_restores_whole() {
         .await;
     assert_eq!(done["state"], "done", "{done}");
     let marked_id: uuid::Uuid = done["result_asset_id"].as_str().unwrap().parse().unwrap();
-    let (_, running) = t.small_object_job(&k.owner, 100_000).await;
+    let (_, running) = t.small_object_job(&k.owner, LONG_JOB_STEPS).await;
     t.wait_job_until(&k.owner, &running, Duration::from_secs(300), |j| {
         j["state"] == "running" && j["step"].as_u64() > Some(0)
     })
