@@ -17,7 +17,6 @@ impl GpuRenderer {
         fwd: &GpuRendered,
         d_image: &[[f32; 3]],
     ) -> Result<Gradients<f32>, GpuError> {
-        let st = &fwd.state;
         let px = fwd.width as usize * fwd.height as usize;
         if d_image.len() != px {
             return Err(RenderError::GradientSize {
@@ -26,6 +25,64 @@ impl GpuRenderer {
             }
             .into());
         }
+        self.backward_with(g, fwd, |_| {
+            let d_buf = self.storage("d image", d_image.len() as u64 * 12)?;
+            self.queue
+                .write_buffer(&d_buf, 0, bytemuck::cast_slice(d_image));
+            Ok(d_buf)
+        })
+    }
+
+    /// [`Self::backward`] from ∂L/∂image as a burn tensor `[1, 3, H, W]` on this renderer's
+    /// burn device ([`Self::burn_device`]), copied on the device: what a finetuning step's
+    /// decoder gives back, without a round trip through the host.
+    pub fn backward_tensor(
+        &self,
+        g: &Gaussians<f32>,
+        fwd: &GpuRendered,
+        d_image: burn::tensor::Tensor<4>,
+    ) -> Result<Gradients<f32>, GpuError> {
+        use burn::backend::Wgpu;
+        let (w, h) = (fwd.width as usize, fwd.height as usize);
+        let dims = d_image.dims();
+        if dims != [1, 3, h, w] {
+            return Err(RenderError::GradientSize {
+                got: dims.iter().product(),
+                expected: 3 * w * h,
+            }
+            .into());
+        }
+        // Row-major RGB, materialised: a permuted view cannot be read as one run.
+        let d = d_image.permute([0, 2, 3, 1]).reshape([w * h * 3]);
+        let prim = d
+            .try_into_primitive::<Wgpu>()
+            .map_err(|e| GpuError::Device(format!("{e:?}")))?;
+        if !prim.is_contiguous() {
+            return Err(GpuError::Device("∂L/∂image is not contiguous".into()));
+        }
+        self.backward_with(g, fwd, |encoder| {
+            let d_buf = self.storage("d image", (w * h * 12) as u64)?;
+            let res = prim
+                .client
+                .get_resource::<burn::cubecl::wgpu::WgpuServer<burn::cubecl::wgpu::AutoCompiler>>(
+                    prim.handle.clone(),
+                )
+                .map_err(|e| GpuError::Run(format!("{e:?}")))?;
+            let res = res.resource();
+            encoder.copy_buffer_to_buffer(&res.buffer, res.offset, &d_buf, 0, (w * h * 12) as u64);
+            Ok(d_buf)
+        })
+    }
+
+    /// The shared part of the backward passes: `d_image` fills ∂L/∂image's buffer (host
+    /// upload, or a device copy recorded in the encoder it is given).
+    fn backward_with(
+        &self,
+        g: &Gaussians<f32>,
+        fwd: &GpuRendered,
+        d_image: impl FnOnce(&mut wgpu::CommandEncoder) -> Result<wgpu::Buffer, GpuError>,
+    ) -> Result<Gradients<f32>, GpuError> {
+        let st = &fwd.state;
         if g.len() != st.n as usize || g.rest_len() != st.rest_len || g.sh_degree != st.sh_degree {
             return Err(RenderError::BadScene(format!(
                 "the render was of {} Gaussians, the scene has {}",
@@ -77,17 +134,15 @@ impl GpuRenderer {
     fn backward_checked(
         &self,
         st: &GpuState,
-        d_image: &[[f32; 3]],
+        d_image: impl FnOnce(&mut wgpu::CommandEncoder) -> Result<wgpu::Buffer, GpuError>,
     ) -> Result<(Vec<f32>, Vec<f32>), GpuError> {
-        let d_buf = self.storage("d image", d_image.len() as u64 * 12)?;
-        self.queue
-            .write_buffer(&d_buf, 0, bytemuck::cast_slice(d_image));
+        let mut encoder = self.device.create_command_encoder(&Default::default());
+        let d_buf = d_image(&mut encoder)?;
         let slots = self.storage("entry slots", u64::from(st.total) * 40)?;
         let n = u64::from(st.n);
         let gs = 14 + st.rest_len as u64;
         let grads = self.sliced_storage("gradients", n * gs * 4)?;
         let aux = self.storage("aux", n * 24)?;
-        let mut encoder = self.device.create_command_encoder(&Default::default());
         encoder.clear_buffer(&slots, 0, None);
         if st.total > 0 {
             let bg0 = bind(

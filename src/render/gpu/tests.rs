@@ -635,3 +635,51 @@ fn chunked_projection_renders_and_back_propagates_bit_for_bit_as_one_dispatch() 
         }
     }
 }
+
+#[test]
+fn a_render_becomes_a_burn_tensor_on_the_device_as_it_reads_back() {
+    let g = scene(41, 800, 1, 1.0, (-4.0, -2.5));
+    let r = gpu();
+    let cam = camera(40, 24, 40.0);
+    let f = r.render(&g, &cam, &RenderOptions::default()).unwrap();
+    let t = r.image_tensor(&f).unwrap();
+    assert_eq!(t.dims(), [1, 3, 24, 40]);
+    let got: Vec<f32> = t.try_into_vec_as::<f32>().unwrap();
+    let n = 24 * 40;
+    for (p, px) in f.image.iter().enumerate() {
+        for c in 0..3 {
+            assert_eq!(got[c * n + p], px[c], "pixel {p}, channel {c}");
+        }
+    }
+}
+
+#[test]
+fn a_burn_gradient_back_propagates_on_the_device_as_from_the_host() {
+    use burn::tensor::{Tensor, TensorData};
+    let g = scene(43, 900, 2, 1.0, (-4.0, -2.5));
+    let r = gpu();
+    let (w, h) = (40usize, 24usize);
+    let cam = camera(w as u32, h as u32, 40.0);
+    let f = r.render(&g, &cam, &RenderOptions::default()).unwrap();
+    let d_host: Vec<[f32; 3]> = (0..w * h)
+        .map(|i| [(i % 7) as f32 - 3.0, 0.5, (i % 3) as f32 * 0.25])
+        .collect();
+    // The same gradient as a burn tensor [1, 3, H, W] on the renderer's device.
+    let planar: Vec<f32> = (0..3)
+        .flat_map(|c| d_host.iter().map(move |p| p[c]))
+        .collect();
+    let device = r.burn_device().unwrap();
+    let d = Tensor::<4>::from_data(TensorData::new(planar, [1, 3, h, w]), &device);
+    let a = r.backward(&g, &f, &d_host).unwrap();
+    let b = r.backward_tensor(&g, &f, d).unwrap();
+    assert_eq!(a.params.means, b.params.means);
+    assert_eq!(a.params.sh_dc, b.params.sh_dc);
+    assert_eq!(a.params.sh_rest, b.params.sh_rest);
+    assert_eq!(a.blend_weights, b.blend_weights);
+    // A tensor of another size is the typed error of a wrong gradient.
+    let small = Tensor::<4>::zeros([1, 3, h, w - 1], &device);
+    assert!(matches!(
+        r.backward_tensor(&g, &f, small),
+        Err(GpuError::Render(RenderError::GradientSize { .. }))
+    ));
+}
