@@ -46,7 +46,7 @@
 use std::ops::ControlFlow;
 use std::time::Instant;
 
-use burn::tensor::{Device, Tensor, TensorData};
+use burn::tensor::{Tensor, TensorData};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -425,14 +425,19 @@ pub fn finetune(
             DiffAttack::Chain(c) if c.is_empty() => None,
             a => Some(a),
         };
-        let leaves = |dev: &Device| -> Vec<Tensor<4>> {
-            wm_frames
-                .iter()
-                .zip(&dims)
-                .map(|(r, &(wd, ht))| to_tensor(r.image(), wd, ht, dev).require_grad())
-                .collect()
-        };
-        let xs = leaves(&device);
+        // The decoder's inputs: on the GPU's own burn device, copied there from the renders'
+        // buffers; otherwise uploaded from the host.
+        let xs = wm_frames
+            .iter()
+            .zip(&dims)
+            .map(|(r, &(wd, ht))| {
+                Ok(match renderer.image_tensor(r, &model.device())? {
+                    Some(t) => t.autodiff(),
+                    None => to_tensor(r.image(), wd, ht, &device),
+                }
+                .require_grad())
+            })
+            .collect::<Result<Vec<_>, FinetuneError>>()?;
         let (z_cl, z_t, low) = decode_views(model, &xs, &targets, attack.as_ref(), cfg.dwt_levels)?;
         let margin = Margin {
             margin: cfg.wm_margin,

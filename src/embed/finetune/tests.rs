@@ -9,6 +9,7 @@ use crate::render::gpu::Rasterizer;
 use crate::render::{self, RenderOptions};
 use crate::scene::orbit::{OrbitOptions, orbit_cameras};
 use crate::scene::synthetic::object_scene;
+use burn::tensor::Device;
 
 fn model(bits: usize) -> WatermarkModel {
     let cfg = TrainConfig {

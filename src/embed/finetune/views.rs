@@ -340,6 +340,28 @@ impl<'a> Renderer<'a> {
             .collect()
     }
 
+    /// `frame`'s image as a burn tensor `[1, 3, H, W]` on `device`, copied on the device, when
+    /// the frame is the GPU's and `device` is that GPU's burn device (`None` otherwise: the
+    /// caller uploads the host image).
+    pub fn image_tensor(
+        &self,
+        frame: &Frame,
+        device: &burn::tensor::Device,
+    ) -> Result<Option<burn::tensor::Tensor<4>>, RenderError> {
+        let Rasterizer::Gpu(gpu) = &self.rasterizer else {
+            return Ok(None);
+        };
+        let r = match frame {
+            Frame::Gpu(r) => r,
+            Frame::Masked { frame, .. } => return self.image_tensor(frame, device),
+            _ => return Ok(None),
+        };
+        if gpu.burn_device()? != *device {
+            return Ok(None);
+        }
+        Ok(Some(gpu.image_tensor(r)?))
+    }
+
     /// ∂L/∂θ from each ∂L/∂image of `frame` in `d_images` (scene-shaped; a replayed view
     /// gives the SH coefficients' gradient only, the geometry being fixed — all of them in one
     /// pass over its weights).
