@@ -33,50 +33,9 @@ impl GpuRenderer {
         })
     }
 
-    /// [`Self::backward`] from ∂L/∂image as a burn tensor `[1, 3, H, W]` on this renderer's
-    /// burn device ([`Self::burn_device`]), copied on the device: what a finetuning step's
-    /// decoder gives back, without a round trip through the host.
-    pub fn backward_tensor(
-        &self,
-        g: &Gaussians<f32>,
-        fwd: &GpuRendered,
-        d_image: burn::tensor::Tensor<4>,
-    ) -> Result<Gradients<f32>, GpuError> {
-        use burn::backend::Wgpu;
-        let (w, h) = (fwd.width as usize, fwd.height as usize);
-        let dims = d_image.dims();
-        if dims != [1, 3, h, w] {
-            return Err(RenderError::GradientSize {
-                got: dims.iter().product(),
-                expected: 3 * w * h,
-            }
-            .into());
-        }
-        // Row-major RGB, materialised: a permuted view cannot be read as one run.
-        let d = d_image.permute([0, 2, 3, 1]).reshape([w * h * 3]);
-        let prim = d
-            .try_into_primitive::<Wgpu>()
-            .map_err(|e| GpuError::Device(format!("{e:?}")))?;
-        if !prim.is_contiguous() {
-            return Err(GpuError::Device("∂L/∂image is not contiguous".into()));
-        }
-        self.backward_with(g, fwd, |encoder| {
-            let d_buf = self.storage("d image", (w * h * 12) as u64)?;
-            let res = prim
-                .client
-                .get_resource::<burn::cubecl::wgpu::WgpuServer<burn::cubecl::wgpu::AutoCompiler>>(
-                    prim.handle.clone(),
-                )
-                .map_err(|e| GpuError::Run(format!("{e:?}")))?;
-            let res = res.resource();
-            encoder.copy_buffer_to_buffer(&res.buffer, res.offset, &d_buf, 0, (w * h * 12) as u64);
-            Ok(d_buf)
-        })
-    }
-
     /// The shared part of the backward passes: `d_image` fills ∂L/∂image's buffer (host
     /// upload, or a device copy recorded in the encoder it is given).
-    fn backward_with(
+    pub(super) fn backward_with(
         &self,
         g: &Gaussians<f32>,
         fwd: &GpuRendered,

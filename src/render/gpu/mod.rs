@@ -16,6 +16,7 @@
 mod backward;
 mod choice;
 mod chunk;
+mod interop;
 mod sort;
 
 pub use choice::{DeviceRequest, PreparedScene, Rasterizer, shared};
@@ -848,41 +849,6 @@ fn camera_uniform(
     ];
     bytes.extend_from_slice(words(&u));
     bytes
-}
-
-impl GpuRenderer {
-    /// The render `r` as a burn tensor `[1, 3, H, W]` on this renderer's burn device
-    /// ([`Self::burn_device`]), copied on the device from the render's own buffer — the
-    /// decoder's input without a round trip through the host.
-    pub fn image_tensor(&self, r: &GpuRendered) -> Result<burn::tensor::Tensor<4>, GpuError> {
-        use burn::backend::Wgpu;
-        use burn::tensor::Tensor;
-        let device = self.burn_device()?;
-        let (w, h) = (r.width as usize, r.height as usize);
-        let t = Tensor::<4>::empty([1, h, w, 3], &device);
-        let prim = t
-            .try_into_primitive::<Wgpu>()
-            .map_err(|e| GpuError::Device(format!("{e:?}")))?;
-        {
-            let res = prim
-                .client
-                .get_resource::<burn::cubecl::wgpu::WgpuServer<burn::cubecl::wgpu::AutoCompiler>>(
-                    prim.handle.clone(),
-                )
-                .map_err(|e| GpuError::Run(format!("{e:?}")))?;
-            let res = res.resource();
-            let mut encoder = self.device.create_command_encoder(&Default::default());
-            encoder.copy_buffer_to_buffer(
-                &r.state.image,
-                0,
-                &res.buffer,
-                res.offset,
-                (w * h * 12) as u64,
-            );
-            self.queue.submit([encoder.finish()]);
-        }
-        Ok(Tensor::<4>::from_primitive::<Wgpu>(prim).permute([0, 3, 1, 2]))
-    }
 }
 
 #[cfg(test)]
