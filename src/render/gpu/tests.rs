@@ -4,6 +4,8 @@
 
 use super::*;
 use crate::render::render;
+use crate::render::{RenderOptions, TILE};
+use crate::scene::{Camera, Gaussians};
 use glam::{Mat3, Vec3};
 use std::sync::Arc;
 
