@@ -279,7 +279,7 @@ pub(crate) fn embed_cmd(a: &EmbedArgs, progress: ProgressMode) -> Result<()> {
     let r = &out.report;
     let st = &r.timings.steps;
     eprintln!(
-        "{} carriers + {} compensators (budget B = {}, {} pruned); carriers hold {:.1} % of the watermark gradient; {:.1} s (finetuning {:.1} s: render {:.1}, watermark {:.1}, visual {:.1}, backward {:.1}, update {:.1})",
+        "{} carriers + {} compensators (budget B = {}, {} pruned); carriers hold {:.1} % of the watermark gradient; {:.1} s (finetuning {:.1} s: render {:.1}, watermark {:.1}, visual {:.1}, backward {:.1}, update {:.1}{})",
         r.carriers,
         r.compensators,
         r.budget.b,
@@ -291,7 +291,12 @@ pub(crate) fn embed_cmd(a: &EmbedArgs, progress: ProgressMode) -> Result<()> {
         st.watermark,
         st.visual,
         st.backward,
-        st.update
+        st.update,
+        if st.images_on_device {
+            "; the steps' images stayed on the GPU"
+        } else {
+            ""
+        }
     );
     write_atomic(&a.out, |f| {
         write_ply(&out.scene, std::io::BufWriter::new(f))?;

@@ -2,6 +2,7 @@
 
 use burn::tensor::{Device, Tensor, TensorData};
 
+use super::LossWeights;
 use crate::attack::diff::{gaussian_blur, straight_through_round};
 use crate::decoder::dwt::{dwt, ll_band};
 use crate::decoder::train::bce_with_logits;
@@ -132,6 +133,35 @@ pub(super) fn band_l1(x: Tensor<4>, y: Tensor<4>, levels: usize, low: bool) -> T
         }
     }
     total.expect("at least one level")
+}
+
+/// L_vis of a render `y` against its target `t` (both `[1, 3, H, W]`) on burn: λ_rec·mean|ŷ −
+/// t| + λ_dssim·(1 − SSIM(ŷ, t)) + λ_high·(high bands' L1), ŷ = clamp(y, 0, 1) — the loss
+/// [`super::visual::visual_loss`] computes in closed form on the host (the tests hold the two
+/// to each other); a GPU job takes this one, on the device its renders are on.
+pub(super) fn visual_loss_tensor(
+    y: Tensor<4>,
+    t: Tensor<4>,
+    weights: &LossWeights,
+    levels: usize,
+) -> Tensor<1> {
+    let yc = y.clamp(0.0, 1.0);
+    let mut l = yc
+        .clone()
+        .sub(t.clone())
+        .abs()
+        .mean()
+        .mul_scalar(weights.rec)
+        .add(
+            ssim(yc.clone(), t.clone())
+                .neg()
+                .add_scalar(1.0)
+                .mul_scalar(weights.dssim),
+        );
+    if levels > 0 {
+        l = l.add(band_l1(yc, t, levels, false).mul_scalar(weights.wav_high));
+    }
+    l
 }
 
 /// The image the decoder sees of a render: clamped to [0, 1] and rounded to 8 bits

@@ -47,7 +47,6 @@ use std::ops::ControlFlow;
 use std::time::Instant;
 
 use burn::tensor::{Tensor, TensorData};
-use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::mask::Masks;
@@ -60,6 +59,7 @@ use crate::scene::Gaussians;
 mod config;
 mod losses;
 mod optim;
+mod routes;
 #[cfg(test)]
 mod tests;
 mod views;
@@ -69,13 +69,12 @@ pub(crate) use visual::reconstruction_loss;
 
 pub use config::{FinetuneConfig, LearningRates, LossWeights, StepRule};
 pub use losses::ssim;
-use losses::{Margin, as_saved, band_l1, from_planar, to_tensor, views_bce};
+use losses::{Margin, as_saved, band_l1, to_tensor, views_bce};
 pub use optim::ROUTE_CLIP;
 use optim::{Adam, RouteMomentum};
 use views::{Renderer, views_psnr};
 pub use views::{View, ViewsCheck, target_views};
 pub(crate) use views::{cameras_logits, views_logits};
-use visual::visual_loss;
 
 /// Why finetuning failed.
 #[derive(Debug, thiserror::Error)]
@@ -135,15 +134,21 @@ fn one() -> f32 {
 }
 
 /// Seconds a finetuning's steps spent in each of their parts, summed over the steps: where a
-/// step's time goes on the rasterizer that ran it (the GPU path's images and ∂L/∂image cross
-/// the host between `render`, `watermark`, `visual` and `backward`).
+/// step's time goes on the rasterizer that ran it.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct StepPhases {
+    /// Whether the steps' images stayed on the device: a GPU job whose decoder runs on that
+    /// GPU renders, computes L_vis, L_wm and both ∂L/∂image, and back-propagates them there
+    /// (only the parameters' gradients and a few scalars are read back). Otherwise images
+    /// and ∂L/∂image cross the host between the parts.
+    #[serde(default)]
+    pub images_on_device: bool,
     /// The step's views rendered (or replayed), and the EOT copy's.
     pub render: f64,
     /// The decoder on the views (clean and attacked), L_wm and its ∂L/∂image, on burn.
     pub watermark: f64,
-    /// L_vis and its ∂L/∂image (closed form, on the host) and the step's PSNR.
+    /// L_vis and the step's PSNR (with its ∂L/∂image, in closed form, on the host; on the
+    /// device, its gradient comes from the watermark's backward pass, timed there).
     pub visual: f64,
     /// Both routes' ∂L/∂image back through the rasterizer to ∂L/∂θ.
     pub backward: f64,
@@ -341,12 +346,18 @@ pub fn finetune(
         .iter()
         .all(|&r| r == 0.0);
     let mut renderer = Renderer::new(views, render_opts, geometry_fixed, cfg.rasterizer.clone());
+    // A GPU job whose decoder is on that GPU keeps the step's images there: renders, L_vis,
+    // ∂L/∂image (`Visual::Device`, `ImageGrads::Device`).
+    let resident = renderer.keep_on_device(&model.device())?;
 
     // Where the schedule ends: `steps`, or twice that once `stretch_bce` stretched it.
     let mut schedule_end = cfg.steps;
     let mut stretch = None;
     let mut step = 0;
-    let mut phases = StepPhases::default();
+    let mut phases = StepPhases {
+        images_on_device: resident,
+        ..StepPhases::default()
+    };
     while step < schedule_end + cfg.extra_steps {
         step += 1;
         let t0 = Instant::now();
@@ -459,34 +470,24 @@ pub fn finetune(
             .add(low.div_scalar(nv).mul_scalar(w.wav_low));
         StepPhases::lap(&mut phases.watermark, &mut mark);
 
-        // L_vis in closed form, view by view (its own gradient, apart from L_wm's); saved
-        // renders are clamped, so it compares what a viewer sees.
-        let vis: Vec<(f64, Vec<[f32; 3]>)> = picked
-            .par_iter()
-            .zip(&renders)
-            .zip(&dims)
-            .map(|((&v, r), &(wd, ht))| {
-                visual_loss(r.image(), &views[v].target, wd, ht, w, cfg.dwt_levels)
-            })
-            .collect();
-        let mut sq_err = 0.0f64;
-        let mut n_px = 0usize;
-        for (&v, r) in picked.iter().zip(&renders) {
-            for (p, q) in r.image().iter().zip(&views[v].target) {
-                for c in 0..3 {
-                    let d = f64::from(p[c].clamp(0.0, 1.0) - q[c]);
-                    sq_err += d * d;
-                }
-            }
-            n_px += r.image().len() * 3;
-        }
+        // L_vis and the step's squared error (the PSNR the fidelity bound reads).
+        let host_targets: Vec<&[[f32; 3]]> = picked.iter().map(|&v| &views[v].target[..]).collect();
+        let (vis, sq_err, n_px) = if resident {
+            routes::visual_on_device(
+                &renderer,
+                &model.device(),
+                &renders,
+                &targets,
+                w,
+                cfg.dwt_levels,
+            )?
+        } else {
+            routes::visual_on_host(&renders, &host_targets, &dims, w, cfg.dwt_levels)
+        };
         StepPhases::lap(&mut phases.visual, &mut mark);
 
         let scalar = |t: &Tensor<1>| t.clone().detach().into_scalar::<f32>();
-        let (lw, lv) = (
-            scalar(&l_wm),
-            (vis.iter().map(|(v, _)| v).sum::<f64>() / nv) as f32,
-        );
+        let (lw, lv) = (scalar(&l_wm), vis.value());
         if !lw.is_finite() || !lv.is_finite() {
             return Err(FinetuneError::Diverged(
                 if lw.is_finite() { lv } else { lw },
@@ -513,50 +514,14 @@ pub fn finetune(
         } else {
             (1.0, 1.0)
         };
-        let gw = l_wm.mul_scalar(wm_scale).backward();
-        let image_grad = |x: &Tensor<4>, grads: &_, n: usize| -> Vec<[f32; 3]> {
-            let d: Vec<f32> = x
-                .grad(grads)
-                .map(|t| t.try_into_vec_as::<f32>().unwrap_or_default())
-                .unwrap_or_default();
-            if d.len() == 3 * n {
-                from_planar(&d, n)
-            } else {
-                vec![[0.0; 3]; n]
-            }
-        };
-
-        let d_wms: Vec<Vec<[f32; 3]>> = renders
-            .iter()
-            .enumerate()
-            .map(|(k, r)| image_grad(&xs[k], &gw, r.image().len()))
-            .collect();
+        // ∂L/∂image of each view, one for each route.
+        let d_images = vis.image_grads(l_wm, &xs, wm_scale, vis_scale, &model.device());
         // (burn runs lazily on a GPU: the decoder's time shows where its results are read.)
         StepPhases::lap(&mut phases.watermark, &mut mark);
 
-        // Two backward passes through each render; sum over the step's views.
-        let mut grad_wm = g.cast(|_| 0.0f32);
-        let mut grad_vis = grad_wm.clone();
-        let f = (f64::from(vis_scale) / nv) as f32;
-        for (k, (r, d_wm)) in renders.iter().zip(&d_wms).enumerate() {
-            let d_vis: Vec<[f32; 3]> = vis[k].1.iter().map(|d| d.map(|v| v * f)).collect();
-            let [by_wm, by_vis]: [Gaussians; 2] = match &wm_renders {
-                None => renderer
-                    .backward_each(&g, r, &[d_wm, &d_vis])?
-                    .try_into()
-                    .expect("two gradients"),
-                Some(wm) => {
-                    let mut by_wm = renderer.backward_each(&g, &wm[k], &[d_wm])?;
-                    let mut by_vis = renderer.backward_each(&g, r, &[&d_vis])?;
-                    [
-                        by_wm.pop().expect("one gradient"),
-                        by_vis.pop().expect("one gradient"),
-                    ]
-                }
-            };
-            add_into(&mut grad_wm, &by_wm);
-            add_into(&mut grad_vis, &by_vis);
-        }
+        // Both routes back through each render, summed over the step's views.
+        let (mut grad_wm, grad_vis) =
+            routes::backward(&renderer, &g, &renders, wm_renders.as_deref(), &d_images)?;
         StepPhases::lap(&mut phases.backward, &mut mark);
         for (s, n) in wm_norm_sum
             .iter_mut()

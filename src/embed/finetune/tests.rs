@@ -659,6 +659,11 @@ fn the_gpu_rasterizer_finetunes_as_the_cpu_reference_does() {
             .clone()
             .to_device(&gpu_rasterizer.burn_device().unwrap().autodiff());
         let all_gpu = run(gpu_rasterizer, &on_device);
+        assert!(!cpu.phases.images_on_device && !on_gpu.phases.images_on_device);
+        assert!(
+            all_gpu.phases.images_on_device,
+            "{name}: the step's images left the GPU"
+        );
         let moved: f32 = cpu
             .gaussians
             .sh_dc
@@ -691,11 +696,14 @@ fn the_gpu_rasterizer_finetunes_as_the_cpu_reference_does() {
             for (a, b) in cpu.log.iter().zip(&on_gpu.log) {
                 assert!(
                     (a.l_wm - b.l_wm).abs() <= 1e-4 * a.l_wm.abs()
+                        && (a.l_vis - b.l_vis).abs() <= 1e-4 * a.l_vis.abs().max(1e-6)
                         && (a.psnr == b.psnr || (a.psnr - b.psnr).abs() < 0.01),
-                    "{name}, {path}, step {}: l_wm {} / {}, PSNR {} / {}",
+                    "{name}, {path}, step {}: l_wm {} / {}, l_vis {} / {}, PSNR {} / {}",
                     a.step,
                     a.l_wm,
                     b.l_wm,
+                    a.l_vis,
+                    b.l_vis,
                     a.psnr,
                     b.psnr
                 );

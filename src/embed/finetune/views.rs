@@ -113,7 +113,7 @@ pub(super) fn views_psnr(renderer: &mut Renderer, g: &Gaussians) -> Result<f32, 
     let (mut sq, mut n) = (0.0f64, 0usize);
     let up = renderer.upload(g)?;
     for v in 0..renderer.views.len() {
-        let frame = renderer.render_with(g, v, up.as_ref())?;
+        let frame = renderer.render_with(g, v, up.as_ref(), false)?;
         let image = frame.image();
         for (p, q) in image.iter().zip(&renderer.views[v].target) {
             for c in 0..3 {
@@ -171,6 +171,8 @@ pub(super) struct Renderer<'a> {
     replays: Option<Vec<Option<Replay<f32>>>>,
     bytes: usize,
     rasterizer: Rasterizer,
+    /// The step's GPU renders stay on the device ([`Self::keep_on_device`]).
+    resident: bool,
 }
 
 impl<'a> Renderer<'a> {
@@ -189,7 +191,19 @@ impl<'a> Renderer<'a> {
             replays: replay.then(|| views.iter().map(|_| None).collect()),
             bytes: 0,
             rasterizer,
+            resident: false,
         }
+    }
+
+    /// From now on the step's views rendered on the GPU stay on the device — their images are
+    /// not read back ([`Frame::image`] is then empty; [`Self::image_tensor`] copies them on the
+    /// device) — when `device` is that GPU's burn device. Returns whether they do.
+    pub fn keep_on_device(&mut self, device: &burn::tensor::Device) -> Result<bool, RenderError> {
+        self.resident = match &self.rasterizer {
+            Rasterizer::Gpu(gpu) => gpu.burn_device()? == *device,
+            Rasterizer::Cpu => false,
+        };
+        Ok(self.resident)
     }
 
     /// Views `vs` of `g`: replayed where recorded, otherwise rasterised (on the GPU from one
@@ -197,7 +211,7 @@ impl<'a> Renderer<'a> {
     pub fn render_views(&mut self, g: &Gaussians, vs: &[usize]) -> Result<Vec<Frame>, RenderError> {
         let up = self.upload(g)?;
         vs.iter()
-            .map(|&v| self.render_with(g, v, up.as_ref()))
+            .map(|&v| self.render_with(g, v, up.as_ref(), self.resident))
             .collect()
     }
 
@@ -209,12 +223,14 @@ impl<'a> Renderer<'a> {
         })
     }
 
-    /// View `v` of `g`; on the GPU from `up`, `g`'s upload ([`Self::upload`]).
+    /// View `v` of `g`; on the GPU from `up`, `g`'s upload ([`Self::upload`]), its image
+    /// left on the device when `resident`.
     fn render_with(
         &mut self,
         g: &Gaussians,
         v: usize,
         up: Option<&GpuScene>,
+        resident: bool,
     ) -> Result<Frame, RenderError> {
         if let Rasterizer::Gpu(gpu) = &self.rasterizer {
             let fresh;
@@ -225,7 +241,12 @@ impl<'a> Renderer<'a> {
                     &fresh
                 }
             };
-            let r = gpu.render_uploaded(scene, &self.views[v].camera, self.opts)?;
+            let camera = &self.views[v].camera;
+            let r = if resident {
+                gpu.render_resident(scene, camera, self.opts)?
+            } else {
+                gpu.render_uploaded(scene, camera, self.opts)?
+            };
             return Ok(Frame::Gpu(Box::new(r)));
         }
         if let Some(r) = self.replay(g, v)? {
@@ -292,7 +313,7 @@ impl<'a> Renderer<'a> {
                 masked = Some((Arc::new(m), up));
             }
             let (scene, up) = masked.as_ref().expect("set above");
-            let frame = self.render_with(scene, v, up.as_ref())?;
+            let frame = self.render_with(scene, v, up.as_ref(), self.resident)?;
             frames.push(Frame::Masked {
                 frame: Box::new(frame),
                 scene: scene.clone(),
@@ -321,11 +342,14 @@ impl<'a> Renderer<'a> {
         vs.iter()
             .map(|&v| {
                 let frame = match &self.rasterizer {
-                    Rasterizer::Gpu(gpu) => Frame::Gpu(Box::new(gpu.render_uploaded(
-                        up.as_ref().expect("uploaded for the GPU"),
-                        &self.views[v].camera,
-                        self.opts,
-                    )?)),
+                    Rasterizer::Gpu(gpu) => {
+                        let (up, camera) = (up.as_ref().expect("uploaded"), &self.views[v].camera);
+                        Frame::Gpu(Box::new(if self.resident {
+                            gpu.render_resident(up, camera, self.opts)?
+                        } else {
+                            gpu.render_uploaded(up, camera, self.opts)?
+                        }))
+                    }
                     Rasterizer::Cpu => Frame::Raster(Box::new(render::render(
                         &masked,
                         &self.views[v].camera,
@@ -393,6 +417,26 @@ impl<'a> Renderer<'a> {
                 .backward_each(g, d_images),
             Frame::Removed { replay, .. } => replay.backward_each(g, d_images),
             Frame::Masked { frame, scene } => self.backward_each(scene, frame, d_images),
+        }
+    }
+
+    /// ∂L/∂θ from each ∂L/∂image of the GPU frame `frame` in `d_images` (burn tensors `[1, 3,
+    /// H, W]` on the GPU's burn device, copied into the backward pass on the device).
+    pub fn backward_tensors(
+        &self,
+        g: &Gaussians,
+        frame: &Frame,
+        d_images: &[burn::tensor::Tensor<4>],
+    ) -> Result<Vec<Gaussians>, RenderError> {
+        match (frame, &self.rasterizer) {
+            (Frame::Gpu(r), Rasterizer::Gpu(gpu)) => d_images
+                .iter()
+                .map(|d| Ok(gpu.backward_tensor(g, r, d.clone())?.params))
+                .collect(),
+            (Frame::Masked { frame, scene }, _) => self.backward_tensors(scene, frame, d_images),
+            _ => Err(RenderError::Device(
+                "a device-side gradient for a frame that is not on the GPU".into(),
+            )),
         }
     }
 }

@@ -427,10 +427,10 @@ fn image_loss(
 mod tests {
     use burn::tensor::Device;
 
-    use super::super::losses::{band_l1, from_planar, ssim, to_tensor};
+    use super::super::losses::{from_planar, to_tensor, visual_loss_tensor};
     use super::*;
 
-    /// The same loss through burn's autodiff (what finetuning ran before this module).
+    /// The same loss through burn's autodiff (what a GPU job runs).
     fn burn_loss(
         y: &[[f32; 3]],
         t: &[[f32; 3]],
@@ -442,22 +442,7 @@ mod tests {
         let device = Device::flex().autodiff();
         let x = to_tensor(y, w, h, &device).require_grad();
         let t = to_tensor(t, w, h, &device);
-        let yc = x.clone().clamp(0.0, 1.0);
-        let mut l = yc
-            .clone()
-            .sub(t.clone())
-            .abs()
-            .mean()
-            .mul_scalar(weights.rec)
-            .add(
-                ssim(yc.clone(), t.clone())
-                    .neg()
-                    .add_scalar(1.0)
-                    .mul_scalar(weights.dssim),
-            );
-        if levels > 0 {
-            l = l.add(band_l1(yc, t, levels, false).mul_scalar(weights.wav_high));
-        }
+        let l = visual_loss_tensor(x.clone(), t, weights, levels);
         let value = f64::from(l.clone().detach().into_scalar::<f32>());
         let grads = l.backward();
         let d: Vec<f32> = x.grad(&grads).unwrap().try_into_vec_as::<f32>().unwrap();

@@ -12,10 +12,11 @@ use crate::scene::{Camera, Gaussians};
 pub struct GpuRendered {
     pub width: u32,
     pub height: u32,
-    /// Linear RGB, row-major, not clamped (as [`super::Rendered::image`]).
+    /// Linear RGB, row-major, not clamped (as [`crate::render::Rendered::image`]), read back
+    /// by [`GpuRenderer::render_uploaded`]; empty after [`GpuRenderer::render_resident`], whose
+    /// image stays on the device ([`GpuRenderer::image_tensor`], [`GpuRenderer::read_image`]).
+    /// The transmittance left at each pixel stays there too ([`GpuRenderer::read_final_t`]).
     pub image: Vec<[f32; 3]>,
-    /// Transmittance left at each pixel (row-major).
-    pub final_t: Vec<f32>,
     /// (tile, Gaussian) pairs sorted and composited.
     pub tile_entries: usize,
     pub(super) state: GpuState,
@@ -152,20 +153,41 @@ impl GpuRenderer {
         opts: &RenderOptions,
     ) -> Result<GpuRendered, GpuError> {
         check_camera(camera, opts)?;
-        if opts.colors.is_some() != scene.overrides {
-            return Err(RenderError::BadScene(format!(
-                "the scene was uploaded {} a colour override, the render asks {} one",
-                if scene.overrides { "with" } else { "without" },
-                if opts.colors.is_some() {
-                    "for"
-                } else {
-                    "for none of"
-                },
-            ))
-            .into());
-        }
+        check_override(scene, opts)?;
         self.injected_fault()?;
-        self.scoped(|| self.render_checked(scene, camera, opts))
+        self.scoped(|| self.render_checked(scene, camera, opts, true))
+    }
+
+    /// [`Self::render_uploaded`] without reading the image back: it stays on the device for
+    /// the decoder and the losses ([`Self::image_tensor`]) and the backward pass
+    /// ([`Self::backward_tensor`]); `image` is empty ([`Self::read_image`] reads it).
+    pub fn render_resident(
+        &self,
+        scene: &GpuScene,
+        camera: &Camera,
+        opts: &RenderOptions,
+    ) -> Result<GpuRendered, GpuError> {
+        check_camera(camera, opts)?;
+        check_override(scene, opts)?;
+        self.injected_fault()?;
+        self.scoped(|| self.render_checked(scene, camera, opts, false))
+    }
+
+    /// The image of `r` (linear RGB, row-major, not clamped), read from the device.
+    pub fn read_image(&self, r: &GpuRendered) -> Result<Vec<[f32; 3]>, GpuError> {
+        let px = u64::from(r.width) * u64::from(r.height);
+        let encoder = self.device.create_command_encoder(&Default::default());
+        let bytes = self.scoped(|| self.read(encoder, &[(&r.state.image, 0, px * 12)]))?;
+        let floats: &[f32] = bytemuck::cast_slice(&bytes);
+        Ok(floats.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
+    }
+
+    /// The transmittance left at each pixel of `r` (row-major), read from the device.
+    pub fn read_final_t(&self, r: &GpuRendered) -> Result<Vec<f32>, GpuError> {
+        let px = u64::from(r.width) * u64::from(r.height);
+        let encoder = self.device.create_command_encoder(&Default::default());
+        let bytes = self.scoped(|| self.read(encoder, &[(&r.state.final_t, 0, px * 4)]))?;
+        Ok(bytemuck::cast_slice(&bytes).to_vec())
     }
 
     fn render_checked(
@@ -173,6 +195,7 @@ impl GpuRenderer {
         scene: &GpuScene,
         camera: &Camera,
         opts: &RenderOptions,
+        read_image: bool,
     ) -> Result<GpuRendered, GpuError> {
         let n = scene.n;
         let (w, h) = (camera.width, camera.height);
@@ -290,16 +313,19 @@ impl GpuRenderer {
             pass.dispatch_workgroups(tiles_x, tiles_y, 1);
         }
         let px = u64::from(w) * u64::from(h);
-        // Image and final T through one readback.
-        let bytes = self.read(encoder, &[(&image, 0, px * 12), (&final_t, 0, px * 4)])?;
+        let rgb = if read_image {
+            let bytes = self.read(encoder, &[(&image, 0, px * 12)])?;
+            let floats: &[f32] = bytemuck::cast_slice(&bytes);
+            floats.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
+        } else {
+            self.queue.submit([encoder.finish()]);
+            Vec::new()
+        };
         drop(keep);
-        let floats: &[f32] = bytemuck::cast_slice(&bytes);
-        let (rgb, t) = floats.split_at(px as usize * 3);
         Ok(GpuRendered {
             width: w,
             height: h,
-            image: rgb.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect(),
-            final_t: t.to_vec(),
+            image: rgb,
             tile_entries: total as usize,
             state: GpuState {
                 n,
@@ -321,6 +347,23 @@ impl GpuRenderer {
             },
         })
     }
+}
+
+/// A render asks for a colour override exactly when the upload carries one.
+fn check_override(scene: &GpuScene, opts: &RenderOptions) -> Result<(), GpuError> {
+    if opts.colors.is_some() != scene.overrides {
+        return Err(RenderError::BadScene(format!(
+            "the scene was uploaded {} a colour override, the render asks {} one",
+            if scene.overrides { "with" } else { "without" },
+            if opts.colors.is_some() {
+                "for"
+            } else {
+                "for none of"
+            },
+        ))
+        .into());
+    }
+    Ok(())
 }
 
 /// The `Camera` uniform of the kernels (see `shaders/project.wgsl`).

@@ -151,7 +151,8 @@ fn scene(seed: u64, n: usize, sh_degree: u8, s: f32, log_scale: (f32, f32)) -> G
 /// final transmittance; returns the largest difference.
 fn assert_parity(g: &Gaussians, cam: &Camera, opts: &RenderOptions) -> f32 {
     let cpu = render(g, cam, opts).unwrap();
-    let gpu = gpu().render(g, cam, opts).unwrap();
+    let renderer = gpu();
+    let gpu = renderer.render(g, cam, opts).unwrap();
     assert_eq!((gpu.width, gpu.height), (cpu.width, cpu.height));
     // Binning is the reference's: the exact tiles each footprint touches (rounding may move
     // a tile at the very edge of a footprint, where α is below 1/255 anyway).
@@ -172,7 +173,7 @@ fn assert_parity(g: &Gaussians, cam: &Camera, opts: &RenderOptions) -> f32 {
     }
     // The reference keeps T tile-major.
     let tiles_x = (cam.width as usize).div_ceil(TILE);
-    for (p, &t) in gpu.final_t.iter().enumerate() {
+    for (p, &t) in renderer.read_final_t(&gpu).unwrap().iter().enumerate() {
         let (x, y) = (p % cam.width as usize, p / cam.width as usize);
         let k = ((y / TILE) * tiles_x + x / TILE) * TILE * TILE + (y % TILE) * TILE + x % TILE;
         let d = (cpu.state.final_t[k] - t).abs();
@@ -263,7 +264,9 @@ fn edge_cases_match_the_reference() {
     };
     let out = gpu().render(&empty, &cam, &opts).unwrap();
     assert!(out.image.iter().all(|p| *p == [0.25, 0.5, 0.75]));
-    assert!(out.final_t.iter().all(|&t| t == 1.0));
+    let final_t = gpu().read_final_t(&out).unwrap();
+    assert_eq!(final_t.len(), 80 * 64);
+    assert!(final_t.iter().all(|&t| t == 1.0));
 }
 
 #[test]
@@ -475,7 +478,14 @@ fn one_upload_renders_every_view_and_back_propagates_as_fresh_uploads_do() {
         let fresh = r.render(&g, &cam, &opts).unwrap();
         let shared = r.render_uploaded(&up, &cam, &opts).unwrap();
         assert_eq!(shared.image, fresh.image, "{w}×{h}, f {f}");
-        assert_eq!(shared.final_t, fresh.final_t);
+        assert_eq!(
+            r.read_final_t(&shared).unwrap(),
+            r.read_final_t(&fresh).unwrap()
+        );
+        // Kept on the device, the same render: read back, as a burn tensor, back-propagated.
+        let resident = r.render_resident(&up, &cam, &opts).unwrap();
+        assert!(resident.image.is_empty());
+        assert_eq!(r.read_image(&resident).unwrap(), fresh.image);
         if (w, h) == (48, 40) {
             let a = r.backward(&g, &fresh, &d_image).unwrap();
             let b = r.backward(&g, &shared, &d_image).unwrap();
@@ -609,7 +619,11 @@ fn chunked_projection_renders_and_back_propagates_bit_for_bit_as_one_dispatch() 
         let flat4 = |v: &[[f32; 4]]| v.iter().flatten().copied().collect::<Vec<_>>();
         let flat2 = |v: &[[f32; 2]]| v.iter().flatten().copied().collect::<Vec<_>>();
         assert_same_bits(name, &flat3(&a.image), &flat3(&b.image));
-        assert_same_bits(name, &a.final_t, &b.final_t);
+        assert_same_bits(
+            name,
+            &whole.read_final_t(&a).unwrap(),
+            &chunked.read_final_t(&b).unwrap(),
+        );
         let ga = whole.backward(&g, &a, &d_image).unwrap();
         let gb = chunked.backward(&g, &b, &d_image).unwrap();
         let (pa, pb) = (&ga.params, &gb.params);
