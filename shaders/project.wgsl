@@ -25,6 +25,12 @@ struct Chunk {
     count: u32,
     params_at: u32,
     grads_at: u32,
+    // `project_backward` adds its gradients to what `grads` holds (a sum over views) instead
+    // of writing them.
+    accumulate: u32,
+    pad0: u32,
+    pad1: u32,
+    pad2: u32,
 }
 @group(0) @binding(8) var<uniform> chunk: Chunk;
 
@@ -208,6 +214,15 @@ const SLOT: u32 = 10u;
 // Per Gaussian: ∂L/∂colour (3), Σ α·T (1), ∂L/∂(x, y) of the screen centre (2).
 @group(0) @binding(7) var<storage, read_write> aux: array<f32>;
 
+// Writes ∂L/∂parameter `idx` of this dispatch's chunk, or adds it when accumulating.
+fn put(idx: u32, v: f32) {
+    if (chunk.accumulate != 0u) {
+        grads[idx] = grads[idx] + v;
+    } else {
+        grads[idx] = v;
+    }
+}
+
 fn basis_len(deg: u32) -> u32 {
     return (deg + 1u) * (deg + 1u);
 }
@@ -277,8 +292,10 @@ fn project_backward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
     let i = chunk.first + local;
     let gs = cam.stride - select(0u, 3u, cam.override_colors != 0u);
     let out = chunk.grads_at + local * gs;
-    for (var k = 0u; k < gs; k = k + 1u) {
-        grads[out + k] = 0.0;
+    if (chunk.accumulate == 0u) {
+        for (var k = 0u; k < gs; k = k + 1u) {
+            grads[out + k] = 0.0;
+        }
     }
     for (var k = 0u; k < 6u; k = k + 1u) {
         aux[i * 6u + k] = 0.0;
@@ -336,18 +353,18 @@ fn project_backward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
         // A channel clamped at 0 passes no gradient.
         dcol = select(dcol, vec3<f32>(0.0), sh_unclamped(base, d) < vec3<f32>(0.0));
     }
-    grads[out + 11u] = C0 * dcol.x;
-    grads[out + 12u] = C0 * dcol.y;
-    grads[out + 13u] = C0 * dcol.z;
+    put(out + 11u, C0 * dcol.x);
+    put(out + 12u, C0 * dcol.y);
+    put(out + 13u, C0 * dcol.z);
     var d_mean = vec3<f32>(0.0);
     if (deg > 0u) {
         var d_dir = vec3<f32>(0.0);
         for (var k = 1u; k < basis_len(deg); k = k + 1u) {
             let b = basis(k, d);
             let o = out + 14u + (k - 1u) * 3u;
-            grads[o] = b * dcol.x;
-            grads[o + 1u] = b * dcol.y;
-            grads[o + 2u] = b * dcol.z;
+            put(o, b * dcol.x);
+            put(o + 1u, b * dcol.y);
+            put(o + 2u, b * dcol.z);
             d_dir += dot(rest(base, k), dcol) * basis_grad(k, d);
         }
         let dd = dot(d, d_dir);
@@ -356,7 +373,7 @@ fn project_backward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
 
     // Opacity through the sigmoid.
     let op = 1.0 / (1.0 + exp(-params[base + 10u]));
-    grads[out + 10u] = g_opacity * op * (1.0 - op);
+    put(out + 10u, g_opacity * op * (1.0 - op));
 
     // The 3D covariance chain again.
     var q = vec4<f32>(params[base + 6u], params[base + 7u], params[base + 8u], params[base + 9u]);
@@ -446,9 +463,9 @@ fn project_backward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
     d_t.z = d_t.z - (cam.fx * tc.x * g_xy.x + cam.fy * tc.y * g_xy.y) * iz2;
     // Camera space → world.
     d_mean += w[0] * d_t.x + w[1] * d_t.y + w[2] * d_t.z;
-    grads[out] = d_mean.x;
-    grads[out + 1u] = d_mean.y;
-    grads[out + 2u] = d_mean.z;
+    put(out, d_mean.x);
+    put(out + 1u, d_mean.y);
+    put(out + 2u, d_mean.z);
 
     // Σ = M Mᵀ → dM = 2 dΣ M; M = R S.
     var d_m: array<vec3<f32>, 3>;
@@ -456,7 +473,7 @@ fn project_backward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
         d_m[a] = 2.0 * (d_sig[a].x * mm[0] + d_sig[a].y * mm[1] + d_sig[a].z * mm[2]);
     }
     for (var c = 0u; c < 3u; c = c + 1u) {
-        grads[out + 3u + c] = (r[0][c] * d_m[0][c] + r[1][c] * d_m[1][c] + r[2][c] * d_m[2][c]) * s[c];
+        put(out + 3u + c, (r[0][c] * d_m[0][c] + r[1][c] * d_m[1][c] + r[2][c] * d_m[2][c]) * s[c]);
     }
     var gr: array<vec3<f32>, 3>;
     for (var a = 0u; a < 3u; a = a + 1u) {
@@ -470,8 +487,8 @@ fn project_backward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
     );
     let qd = dot(q, dq);
     let d_rot = (dq - q * qd) / qn;
-    grads[out + 6u] = d_rot.x;
-    grads[out + 7u] = d_rot.y;
-    grads[out + 8u] = d_rot.z;
-    grads[out + 9u] = d_rot.w;
+    put(out + 6u, d_rot.x);
+    put(out + 7u, d_rot.y);
+    put(out + 8u, d_rot.z);
+    put(out + 9u, d_rot.w);
 }

@@ -183,7 +183,8 @@ impl Visual {
 
 /// Both routes' ∂L/∂image back through each render — the watermark route's through
 /// `wm_renders` where the EOT term read other renders of the step's views — summed over the
-/// step's views: (∂L_wm/∂θ, ∂L_vis/∂θ).
+/// step's views: (∂L_wm/∂θ, ∂L_vis/∂θ). On the device each route's views are summed there and
+/// read back once.
 pub(super) fn backward(
     renderer: &Renderer,
     g: &Gaussians,
@@ -191,33 +192,41 @@ pub(super) fn backward(
     wm_renders: Option<&[Frame]>,
     d_images: &ImageGrads,
 ) -> Result<(Gaussians, Gaussians), FinetuneError> {
-    let mut grad_wm = g.cast(|_| 0.0f32);
-    let mut grad_vis = grad_wm.clone();
-    for (k, r) in renders.iter().enumerate() {
-        let wm_frame = wm_renders.map_or(r, |wm| &wm[k]);
-        let [by_wm, by_vis]: [Gaussians; 2] = match d_images {
-            ImageGrads::Host(d) => {
-                let [d_wm, d_vis] = &d[k];
-                if wm_renders.is_none() {
+    let wm_frame = |k: usize| wm_renders.map_or(&renders[k], |wm| &wm[k]);
+    match d_images {
+        ImageGrads::Device(d) => {
+            let wm: Vec<(&Frame, Tensor<4>)> = d
+                .iter()
+                .enumerate()
+                .map(|(k, [d_wm, _])| (wm_frame(k), d_wm.clone()))
+                .collect();
+            let vis: Vec<(&Frame, Tensor<4>)> = renders
+                .iter()
+                .zip(d)
+                .map(|(r, [_, d_vis])| (r, d_vis.clone()))
+                .collect();
+            Ok((
+                renderer.backward_summed(g, &wm)?,
+                renderer.backward_summed(g, &vis)?,
+            ))
+        }
+        ImageGrads::Host(d) => {
+            let mut grad_wm = g.cast(|_| 0.0f32);
+            let mut grad_vis = grad_wm.clone();
+            for (k, (r, [d_wm, d_vis])) in renders.iter().zip(d).enumerate() {
+                let [by_wm, by_vis]: [Gaussians; 2] = if wm_renders.is_none() {
                     renderer.backward_each(g, r, &[d_wm, d_vis])?
                 } else {
-                    let mut by_wm = renderer.backward_each(g, wm_frame, &[d_wm])?;
+                    let mut by_wm = renderer.backward_each(g, wm_frame(k), &[d_wm])?;
                     by_wm.extend(renderer.backward_each(g, r, &[d_vis])?);
                     by_wm
                 }
+                .try_into()
+                .expect("two gradients");
+                add_into(&mut grad_wm, &by_wm);
+                add_into(&mut grad_vis, &by_vis);
             }
-            ImageGrads::Device(d) => {
-                let [d_wm, d_vis] = &d[k];
-                let mut by_wm =
-                    renderer.backward_tensors(g, wm_frame, std::slice::from_ref(d_wm))?;
-                by_wm.extend(renderer.backward_tensors(g, r, std::slice::from_ref(d_vis))?);
-                by_wm
-            }
+            Ok((grad_wm, grad_vis))
         }
-        .try_into()
-        .expect("two gradients");
-        add_into(&mut grad_wm, &by_wm);
-        add_into(&mut grad_vis, &by_vis);
     }
-    Ok((grad_wm, grad_vis))
 }

@@ -420,25 +420,37 @@ impl<'a> Renderer<'a> {
         }
     }
 
-    /// ∂L/∂θ from each ∂L/∂image of the GPU frame `frame` in `d_images` (burn tensors `[1, 3,
-    /// H, W]` on the GPU's burn device, copied into the backward pass on the device).
-    pub fn backward_tensors(
+    /// Σ over `passes` of ∂L/∂θ, each pass a GPU frame and its ∂L/∂image (a burn tensor `[1,
+    /// 3, H, W]` on the GPU's burn device): copied into the rasterizer's backward and summed on
+    /// the device, read back once (`g` gives the shape; a frame of a copy with Gaussians
+    /// removed back-propagates at its own parameters).
+    pub fn backward_summed(
         &self,
         g: &Gaussians,
-        frame: &Frame,
-        d_images: &[burn::tensor::Tensor<4>],
-    ) -> Result<Vec<Gaussians>, RenderError> {
-        match (frame, &self.rasterizer) {
-            (Frame::Gpu(r), Rasterizer::Gpu(gpu)) => d_images
-                .iter()
-                .map(|d| Ok(gpu.backward_tensor(g, r, d.clone())?.params))
-                .collect(),
-            (Frame::Masked { frame, scene }, _) => self.backward_tensors(scene, frame, d_images),
-            _ => Err(RenderError::Device(
-                "a device-side gradient for a frame that is not on the GPU".into(),
-            )),
-        }
+        passes: &[(&Frame, burn::tensor::Tensor<4>)],
+    ) -> Result<Gaussians, RenderError> {
+        let Rasterizer::Gpu(gpu) = &self.rasterizer else {
+            return Err(not_on_the_gpu());
+        };
+        let passes = passes
+            .iter()
+            .map(|(frame, d)| Ok((gpu_render(frame).ok_or_else(not_on_the_gpu)?, d.clone())))
+            .collect::<Result<Vec<_>, RenderError>>()?;
+        Ok(gpu.backward_tensors_summed(g, &passes)?)
     }
+}
+
+/// The GPU render of a frame, through a removal's copy.
+fn gpu_render(frame: &Frame) -> Option<&GpuRendered> {
+    match frame {
+        Frame::Gpu(r) => Some(r),
+        Frame::Masked { frame, .. } => gpu_render(frame),
+        _ => None,
+    }
+}
+
+fn not_on_the_gpu() -> RenderError {
+    RenderError::Device("a device-side gradient for a frame that is not on the GPU".into())
 }
 
 /// A removal mask must mark each Gaussian of the scene.

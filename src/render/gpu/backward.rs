@@ -42,50 +42,74 @@ impl GpuRenderer {
         d_image: impl FnOnce(&mut wgpu::CommandEncoder) -> Result<wgpu::Buffer, GpuError>,
     ) -> Result<Gradients<f32>, GpuError> {
         let st = &fwd.state;
-        if g.len() != st.n as usize || g.rest_len() != st.rest_len || g.sh_degree != st.sh_degree {
-            return Err(RenderError::BadScene(format!(
-                "the render was of {} Gaussians, the scene has {}",
-                st.n,
-                g.len()
-            ))
-            .into());
-        }
+        check_shape(g, st)?;
         self.injected_fault()?;
         let (grads, aux) = self.scoped(|| self.backward_checked(st, d_image))?;
         let n = g.len();
-        let gs = 14 + st.rest_len;
         let z3 = [0.0f32; 3];
-        let mut params = Gaussians {
-            means: vec![z3; n],
-            log_scales: vec![z3; n],
-            rotations: vec![[0.0; 4]; n],
-            opacity_logits: vec![0.0; n],
-            sh_dc: vec![z3; n],
-            sh_rest: vec![0.0; n * st.rest_len],
-            sh_degree: g.sh_degree,
-        };
         let mut colors = vec![z3; n];
         let mut blend_weights = vec![0.0; n];
         let mut screen_xy = vec![[0.0; 2]; n];
         for i in 0..n {
-            let p = &grads[i * gs..(i + 1) * gs];
-            params.means[i] = [p[0], p[1], p[2]];
-            params.log_scales[i] = [p[3], p[4], p[5]];
-            params.rotations[i] = [p[6], p[7], p[8], p[9]];
-            params.opacity_logits[i] = p[10];
-            params.sh_dc[i] = [p[11], p[12], p[13]];
-            params.sh_rest[i * st.rest_len..(i + 1) * st.rest_len].copy_from_slice(&p[14..]);
             let a = &aux[i * 6..(i + 1) * 6];
             colors[i] = [a[0], a[1], a[2]];
             blend_weights[i] = a[3];
             screen_xy[i] = [a[4], a[5]];
         }
         Ok(Gradients {
-            params,
+            params: unpack(&grads, g),
             colors,
             blend_weights,
             screen_xy,
         })
+    }
+
+    /// Σ over `passes` of ∂L/∂θ — each pass a render of a scene shaped like `g` and ∂L/∂image
+    /// filling its buffer (as [`Self::backward_with`]) — summed on the device in the passes'
+    /// order (`project_backward` adding to one buffer) and read back once.
+    pub(super) fn backward_sum_with<'a>(
+        &self,
+        g: &Gaussians<f32>,
+        passes: impl IntoIterator<
+            Item = (
+                &'a GpuRendered,
+                Box<dyn FnOnce(&mut wgpu::CommandEncoder) -> Result<wgpu::Buffer, GpuError> + 'a>,
+            ),
+        >,
+    ) -> Result<Gaussians<f32>, GpuError> {
+        let passes: Vec<_> = passes.into_iter().collect();
+        for (fwd, _) in &passes {
+            check_shape(g, &fwd.state)?;
+        }
+        self.injected_fault()?;
+        let n = g.len() as u64;
+        let gs = 14 + g.rest_len() as u64;
+        let grads = self.scoped(|| {
+            let grads = self.sliced_storage("gradients", (n * gs * 4).max(4))?;
+            let aux = self.storage("aux", (n * 24).max(4))?;
+            let mut encoder = self.device.create_command_encoder(&Default::default());
+            if passes.is_empty() {
+                encoder.clear_buffer(&grads, 0, None);
+            }
+            let mut keep = Vec::new();
+            for (k, (fwd, d_image)) in passes.into_iter().enumerate() {
+                let d_buf = d_image(&mut encoder)?;
+                self.encode_backward(
+                    &mut encoder,
+                    &fwd.state,
+                    &d_buf,
+                    &grads,
+                    &aux,
+                    k > 0,
+                    &mut keep,
+                )?;
+                keep.push(d_buf);
+            }
+            let bytes = self.read(encoder, &[(&grads, 0, n * gs * 4)])?;
+            drop(keep);
+            Ok(bytemuck::cast_slice::<u8, f32>(&bytes).to_vec())
+        })?;
+        Ok(unpack(&grads, g))
     }
 
     /// The device work of [`Self::backward`]: parameter gradients and the auxiliary outputs,
@@ -97,11 +121,38 @@ impl GpuRenderer {
     ) -> Result<(Vec<f32>, Vec<f32>), GpuError> {
         let mut encoder = self.device.create_command_encoder(&Default::default());
         let d_buf = d_image(&mut encoder)?;
-        let slots = self.storage("entry slots", u64::from(st.total) * 40)?;
         let n = u64::from(st.n);
         let gs = 14 + st.rest_len as u64;
         let grads = self.sliced_storage("gradients", n * gs * 4)?;
         let aux = self.storage("aux", n * 24)?;
+        let mut keep = Vec::new();
+        self.encode_backward(&mut encoder, st, &d_buf, &grads, &aux, false, &mut keep)?;
+        // Gradients and aux through one readback.
+        let (gbytes, abytes) = (n * gs * 4, n * 24);
+        let bytes = self.read(encoder, &[(&grads, 0, gbytes), (&aux, 0, abytes)])?;
+        drop(keep);
+        let floats: &[f32] = bytemuck::cast_slice(&bytes);
+        let (g, a) = floats.split_at(gbytes as usize / 4);
+        Ok((g.to_vec(), a.to_vec()))
+    }
+
+    /// Records one backward pass of the render `st` from ∂L/∂image in `d_buf`: the entries'
+    /// slots, then `project_backward` writing — or, `accumulate`, adding — the parameters'
+    /// gradients into `grads` and the auxiliary outputs into `aux`. Buffers the encoder still
+    /// needs go to `keep`.
+    #[allow(clippy::too_many_arguments)]
+    fn encode_backward(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        st: &GpuState,
+        d_buf: &wgpu::Buffer,
+        grads: &wgpu::Buffer,
+        aux: &wgpu::Buffer,
+        accumulate: bool,
+        keep: &mut Vec<wgpu::Buffer>,
+    ) -> Result<(), GpuError> {
+        let slots = self.storage("entry slots", u64::from(st.total) * 40)?;
+        let gs = 14 + st.rest_len as u64;
         encoder.clear_buffer(&slots, 0, None);
         if st.total > 0 {
             let bg0 = bind(
@@ -116,7 +167,7 @@ impl GpuRenderer {
                     (4, &st.ranges),
                     (5, &st.final_t),
                     (6, &st.n_contrib),
-                    (7, &d_buf),
+                    (7, d_buf),
                 ],
             );
             let bg1 = bind(&self.device, &self.pipes.raster_backward, 1, &[(0, &slots)]);
@@ -126,12 +177,11 @@ impl GpuRenderer {
             pass.set_bind_group(1, &bg1, &[]);
             pass.dispatch_workgroups(st.tiles.0, st.tiles.1, 1);
         }
-        let mut keep = Vec::new();
         self.per_gaussian(
-            &mut encoder,
+            encoder,
             &self.pipes.project_backward,
             st.n,
-            &[(0, &st.cam), (4, &st.offsets), (5, &slots), (7, &aux)],
+            &[(0, &st.cam), (4, &st.offsets), (5, &slots), (7, aux)],
             &[
                 Sliced {
                     binding: 1,
@@ -140,18 +190,53 @@ impl GpuRenderer {
                 },
                 Sliced {
                     binding: 6,
-                    buffer: &grads,
+                    buffer: grads,
                     floats: gs as u32,
                 },
             ],
-            &mut keep,
+            accumulate,
+            keep,
         )?;
-        // Gradients and aux through one readback.
-        let (gbytes, abytes) = (n * gs * 4, n * 24);
-        let bytes = self.read(encoder, &[(&grads, 0, gbytes), (&aux, 0, abytes)])?;
-        drop(keep);
-        let floats: &[f32] = bytemuck::cast_slice(&bytes);
-        let (g, a) = floats.split_at(gbytes as usize / 4);
-        Ok((g.to_vec(), a.to_vec()))
+        keep.push(slots);
+        Ok(())
     }
+}
+
+/// A render's backward pass must be of a scene shaped like `g`.
+fn check_shape(g: &Gaussians<f32>, st: &GpuState) -> Result<(), GpuError> {
+    if g.len() != st.n as usize || g.rest_len() != st.rest_len || g.sh_degree != st.sh_degree {
+        return Err(RenderError::BadScene(format!(
+            "the render was of {} Gaussians, the scene has {}",
+            st.n,
+            g.len()
+        ))
+        .into());
+    }
+    Ok(())
+}
+
+/// Parameter gradients as the device lays them out (14 + rest floats a Gaussian) → a scene.
+fn unpack(grads: &[f32], g: &Gaussians<f32>) -> Gaussians<f32> {
+    let (n, rl) = (g.len(), g.rest_len());
+    let gs = 14 + rl;
+    let z3 = [0.0f32; 3];
+    let mut params = Gaussians {
+        means: vec![z3; n],
+        log_scales: vec![z3; n],
+        rotations: vec![[0.0; 4]; n],
+        opacity_logits: vec![0.0; n],
+        sh_dc: vec![z3; n],
+        sh_rest: vec![0.0; n * rl],
+        sh_degree: g.sh_degree,
+    };
+    for i in 0..n {
+        let p = &grads[i * gs..(i + 1) * gs];
+        params.means[i] = [p[0], p[1], p[2]];
+        params.log_scales[i] = [p[3], p[4], p[5]];
+        params.rotations[i] = [p[6], p[7], p[8], p[9]];
+        params.opacity_logits[i] = p[10];
+        params.sh_dc[i] = [p[11], p[12], p[13]];
+        params.sh_rest[i * rl..(i + 1) * rl].copy_from_slice(&p[14..]);
+    }
+    params
 }

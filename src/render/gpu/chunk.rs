@@ -80,8 +80,10 @@ impl GpuRenderer {
 
     /// Records `pipe` (group 0) over Gaussians [0, n), a chunk a dispatch: `whole` bound whole,
     /// each of `sliced` bound to the chunk's slice, the `Chunk` uniform at binding 8 (the first
-    /// index, the count, and the float where the chunk starts in the first and second sliced
-    /// binding). The uniforms go to `keep`.
+    /// index, the count, the float where the chunk starts in the first and second sliced
+    /// binding, and `accumulate`: whether `project_backward` adds to its gradients' buffer).
+    /// The uniforms go to `keep`.
+    #[allow(clippy::too_many_arguments)]
     pub(crate) fn per_gaussian(
         &self,
         encoder: &mut wgpu::CommandEncoder,
@@ -89,6 +91,7 @@ impl GpuRenderer {
         n: u32,
         whole: &[(u32, &wgpu::Buffer)],
         sliced: &[Sliced],
+        accumulate: bool,
         keep: &mut Vec<wgpu::Buffer>,
     ) -> Result<(), GpuError> {
         let floats = sliced.iter().map(|s| s.floats).max().unwrap_or(1);
@@ -104,7 +107,16 @@ impl GpuRenderer {
                 .map(|s| slice(first, count, u64::from(s.floats) * 4, align))
                 .collect();
             let at = |k: usize| slices.get(k).map_or(0, |s| s.at);
-            let uniform = self.uniform(words(&[first, count, at(0), at(1)]));
+            let uniform = self.uniform(words(&[
+                first,
+                count,
+                at(0),
+                at(1),
+                u32::from(accumulate),
+                0,
+                0,
+                0,
+            ]));
             let mut entries: Vec<wgpu::BindGroupEntry> = whole
                 .iter()
                 .map(|(b, buf)| wgpu::BindGroupEntry {

@@ -230,6 +230,7 @@ impl GpuRenderer {
                 buffer: param_buf,
                 floats: stride,
             }],
+            false,
             &mut keep,
         )?;
         self.scan(&mut encoder, &counts, n + 1, &mut keep)?;

@@ -77,6 +77,39 @@ impl GpuRenderer {
         fwd: &GpuRendered,
         d_image: Tensor<4>,
     ) -> Result<Gradients<f32>, GpuError> {
+        let fill = self.gradient_fill(fwd, d_image)?;
+        self.backward_with(g, fwd, fill)
+    }
+
+    /// Σ over `passes` of ∂L/∂θ ([`Self::backward_tensor`]'s parameters' gradients), summed on
+    /// the device in the passes' order and read back once: a finetuning step's views for one
+    /// route. Each render must be of a scene shaped like `g` (another scene's values may have
+    /// rendered it — a copy with Gaussians removed — the gradient is then at its parameters).
+    pub fn backward_tensors_summed(
+        &self,
+        g: &Gaussians<f32>,
+        passes: &[(&GpuRendered, Tensor<4>)],
+    ) -> Result<Gaussians<f32>, GpuError> {
+        type Fill<'a> =
+            Box<dyn FnOnce(&mut wgpu::CommandEncoder) -> Result<wgpu::Buffer, GpuError> + 'a>;
+        let fills = passes
+            .iter()
+            .map(|(fwd, d)| Ok((*fwd, Box::new(self.gradient_fill(fwd, d.clone())?) as Fill)))
+            .collect::<Result<Vec<_>, GpuError>>()?;
+        self.backward_sum_with(g, fills)
+    }
+
+    /// Checks ∂L/∂image `d_image` against the render `fwd` and gives what fills the backward's
+    /// buffer from it: row-major RGB, materialised (a permuted view cannot be read as one
+    /// run), copied on the device.
+    fn gradient_fill<'a>(
+        &'a self,
+        fwd: &GpuRendered,
+        d_image: Tensor<4>,
+    ) -> Result<
+        impl FnOnce(&mut wgpu::CommandEncoder) -> Result<wgpu::Buffer, GpuError> + 'a,
+        GpuError,
+    > {
         let (w, h) = (fwd.width as usize, fwd.height as usize);
         let dims = d_image.dims();
         if dims != [1, 3, h, w] {
@@ -86,12 +119,11 @@ impl GpuRenderer {
             }
             .into());
         }
-        // Row-major RGB, materialised: a permuted view cannot be read as one run.
         let prim = primitive(d_image.permute([0, 2, 3, 1]).reshape([1, 1, 1, w * h * 3]))?;
         if !prim.is_contiguous() {
             return Err(GpuError::Device("∂L/∂image is not contiguous".into()));
         }
-        self.backward_with(g, fwd, |encoder| {
+        Ok(move |encoder: &mut wgpu::CommandEncoder| {
             let bytes = (w * h * 12) as u64;
             let d_buf = self.storage("d image", bytes)?;
             copy_with_storage(encoder, &prim, Direction::From(&d_buf), bytes)?;

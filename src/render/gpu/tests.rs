@@ -699,3 +699,94 @@ fn a_burn_gradient_back_propagates_on_the_device_as_from_the_host() {
         Err(GpuError::Render(RenderError::GradientSize { .. }))
     ));
 }
+
+#[test]
+fn a_steps_gradients_summed_on_the_device_are_the_sum_of_each_views() {
+    use burn::tensor::{Tensor, TensorData};
+    // Three views of a scene with SH (every parameter's gradient), one of them of a copy with
+    // some Gaussians transparent (a removal in the EOT term), split over chunks of 300.
+    let g = scene(44, 900, 2, 1.0, (-4.0, -2.5));
+    let mut masked = g.clone();
+    for o in masked.opacity_logits.iter_mut().step_by(3) {
+        *o = -40.0;
+    }
+    let r = gpu();
+    let chunked = GpuRenderer::new(AdapterChoice::AllowSoftware)
+        .unwrap()
+        .with_gaussians_per_dispatch(300);
+    let device = r.burn_device().unwrap();
+    let opts = RenderOptions::default();
+    let views = [
+        (&g, camera(40, 24, 40.0)),
+        (&masked, camera(40, 24, 40.0)),
+        (&g, camera(33, 29, 55.0)),
+    ];
+    for renderer in [&*r, &chunked] {
+        let device = renderer.burn_device().unwrap_or_else(|_| device.clone());
+        let mut passes = Vec::new();
+        let mut sum = g.cast(|_| 0.0f32);
+        for (k, (scene, cam)) in views.iter().enumerate() {
+            let f = renderer.render(scene, cam, &opts).unwrap();
+            let n = (cam.width * cam.height) as usize;
+            let planar: Vec<f32> = (0..3 * n)
+                .map(|i| ((i * (k + 3)) % 11) as f32 * 0.1 - 0.5)
+                .collect();
+            let shape = [1, 3, cam.height as usize, cam.width as usize];
+            let d = Tensor::<4>::from_data(TensorData::new(planar, shape), &device);
+            let one = renderer
+                .backward_tensor(scene, &f, d.clone())
+                .unwrap()
+                .params;
+            for (s, v) in sum.means.iter_mut().zip(&one.means) {
+                (0..3).for_each(|c| s[c] += v[c]);
+            }
+            for (s, v) in sum.sh_dc.iter_mut().zip(&one.sh_dc) {
+                (0..3).for_each(|c| s[c] += v[c]);
+            }
+            for (s, v) in sum.sh_rest.iter_mut().zip(&one.sh_rest) {
+                *s += v;
+            }
+            for (s, v) in sum.rotations.iter_mut().zip(&one.rotations) {
+                (0..4).for_each(|c| s[c] += v[c]);
+            }
+            for (s, v) in sum.log_scales.iter_mut().zip(&one.log_scales) {
+                (0..3).for_each(|c| s[c] += v[c]);
+            }
+            for (s, v) in sum.opacity_logits.iter_mut().zip(&one.opacity_logits) {
+                *s += v;
+            }
+            passes.push((f, d));
+        }
+        let refs: Vec<(&GpuRendered, Tensor<4>)> =
+            passes.iter().map(|(f, d)| (f, d.clone())).collect();
+        let summed = renderer.backward_tensors_summed(&g, &refs).unwrap();
+        // The same additions in the same order; a compiler may fuse one into a multiply-add,
+        // so allow rounding of the largest value.
+        let flat = |x: &Gaussians| -> Vec<f32> {
+            let mut v: Vec<f32> = x.means.iter().flatten().copied().collect();
+            v.extend(x.log_scales.iter().flatten());
+            v.extend(x.rotations.iter().flatten());
+            v.extend(&x.opacity_logits);
+            v.extend(x.sh_dc.iter().flatten());
+            v.extend(&x.sh_rest);
+            v
+        };
+        let (a, b) = (flat(&sum), flat(&summed));
+        let scale = a.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        assert!(scale > 0.0);
+        for (i, (x, y)) in a.iter().zip(&b).enumerate() {
+            assert!(
+                (x - y).abs() <= 1e-6 * scale,
+                "value {i}: {x} vs {y} (scale {scale})"
+            );
+        }
+        // No passes: zero; a render of another shape: the typed error.
+        let none = renderer.backward_tensors_summed(&g, &[]).unwrap();
+        assert!(flat(&none).iter().all(|&v| v == 0.0));
+        let other = scene(45, 10, 2, 1.0, (-4.0, -2.5));
+        assert!(matches!(
+            renderer.backward_tensors_summed(&other, &refs),
+            Err(GpuError::Render(RenderError::BadScene(_)))
+        ));
+    }
+}
