@@ -54,9 +54,11 @@ use crate::attack::diff::{DiffAttack, DiffAttackError, EotRng, random_compositio
 use crate::attack::model::ModelAttack;
 use crate::decoder::WatermarkModel;
 use crate::render::RenderError;
+use crate::render::gpu::Rasterizer;
 use crate::scene::Gaussians;
 
 mod config;
+mod device;
 mod losses;
 mod optim;
 mod routes;
@@ -71,7 +73,7 @@ pub use config::{FinetuneConfig, LearningRates, LossWeights, StepRule};
 pub use losses::ssim;
 use losses::{Margin, as_saved, band_l1, to_tensor, views_bce};
 pub use optim::ROUTE_CLIP;
-use optim::{Adam, RouteMomentum};
+use optim::{Adam, RouteMomentum, add_into, copy_one, grad_norms, shrink_offsets};
 use views::{Renderer, views_psnr};
 pub use views::{View, ViewsCheck, target_views};
 pub(crate) use views::{cameras_logits, views_logits};
@@ -143,6 +145,10 @@ pub struct StepPhases {
     /// and ∂L/∂image cross the host between the parts.
     #[serde(default)]
     pub images_on_device: bool,
+    /// Whether the Gaussians and their Adam state stayed there too (a GPU job whose Gaussians
+    /// step by Adam): a step then reads back only the scalars it logs.
+    #[serde(default)]
+    pub params_on_device: bool,
     /// The step's views rendered (or replayed), and the EOT copy's.
     pub render: f64,
     /// The decoder on the views (clean and attacked), L_wm and its ∂L/∂image, on burn.
@@ -189,85 +195,6 @@ pub struct StretchCheck {
     pub bce_clean: f32,
     pub threshold: f32,
     pub stretched: bool,
-}
-
-/// Scales the offsets of the Gaussians in `on` from `base` by `f` (quaternions renormalised).
-fn shrink_offsets(g: &mut Gaussians, base: &Gaussians, on: &[bool], f: f32) {
-    let rl = g.rest_len();
-    // Unchanged values stay bit-identical (a replayed view checks that the geometry is).
-    let lerp = |x: &mut f32, x0: f32| {
-        if *x != x0 {
-            *x = x0 + f * (*x - x0);
-        }
-    };
-    for i in (0..g.len()).filter(|&i| on[i]) {
-        for k in 0..3 {
-            lerp(&mut g.means[i][k], base.means[i][k]);
-            lerp(&mut g.sh_dc[i][k], base.sh_dc[i][k]);
-            lerp(&mut g.log_scales[i][k], base.log_scales[i][k]);
-        }
-        for k in i * rl..(i + 1) * rl {
-            lerp(&mut g.sh_rest[k], base.sh_rest[k]);
-        }
-        lerp(&mut g.opacity_logits[i], base.opacity_logits[i]);
-        if g.rotations[i] == base.rotations[i] {
-            continue; // unchanged quaternions stay bit-identical
-        }
-        for k in 0..4 {
-            lerp(&mut g.rotations[i][k], base.rotations[i][k]);
-        }
-        let q = g.rotations[i];
-        let n = q.iter().map(|v| v * v).sum::<f32>().sqrt();
-        if n > 1e-12 && n.is_finite() {
-            g.rotations[i] = q.map(|v| v / n);
-        }
-    }
-}
-
-/// Adds `b` to `a`, parameter by parameter.
-fn add_into(a: &mut Gaussians, b: &Gaussians) {
-    let zip3 = |x: &mut [[f32; 3]], y: &[[f32; 3]]| {
-        for (p, q) in x.iter_mut().zip(y) {
-            for k in 0..3 {
-                p[k] += q[k];
-            }
-        }
-    };
-    zip3(&mut a.means, &b.means);
-    zip3(&mut a.log_scales, &b.log_scales);
-    zip3(&mut a.sh_dc, &b.sh_dc);
-    for (p, q) in a.rotations.iter_mut().zip(&b.rotations) {
-        for k in 0..4 {
-            p[k] += q[k];
-        }
-    }
-    for (p, q) in a.opacity_logits.iter_mut().zip(&b.opacity_logits) {
-        *p += q;
-    }
-    for (p, q) in a.sh_rest.iter_mut().zip(&b.sh_rest) {
-        *p += q;
-    }
-}
-
-/// ‖∂L/∂θ_i‖₂ over every parameter of Gaussian i, or over its SH coefficients only when
-/// `colour_only` (the parameters colour-only finetuning moves).
-fn grad_norms(g: &Gaussians, colour_only: bool) -> Vec<f32> {
-    let rl = g.rest_len();
-    (0..g.len())
-        .map(|i| {
-            let mut s = 0.0f64;
-            let mut add = |v: f32| s += f64::from(v) * f64::from(v);
-            if !colour_only {
-                g.means[i].iter().for_each(|&v| add(v));
-                g.log_scales[i].iter().for_each(|&v| add(v));
-                g.rotations[i].iter().for_each(|&v| add(v));
-                add(g.opacity_logits[i]);
-            }
-            g.sh_dc[i].iter().for_each(|&v| add(v));
-            g.sh_rest[i * rl..(i + 1) * rl].iter().for_each(|&v| add(v));
-            s.sqrt() as f32
-        })
-        .collect()
 }
 
 /// Finetunes `scene` (the split scene of the plan) so that its renders decode to `message`
@@ -349,6 +276,21 @@ pub fn finetune(
     // A GPU job whose decoder is on that GPU keeps the step's images there: renders, L_vis,
     // ∂L/∂image (`Visual::Device`, `ImageGrads::Device`).
     let resident = renderer.keep_on_device(&model.device())?;
+    // And the Gaussians with their Adam state too when they step by Adam: a step then reads
+    // back only the scalars it logs (`device::Stepper`).
+    let mut on_device = match &cfg.rasterizer {
+        Rasterizer::Gpu(gpu) if resident && (cfg.coupled || cfg.step_rule == StepRule::Adam) => {
+            Some(device::Stepper::new(
+                gpu.clone(),
+                &g,
+                scene,
+                cfg,
+                masks,
+                bounded,
+            )?)
+        }
+        _ => None,
+    };
 
     // Where the schedule ends: `steps`, or twice that once `stretch_bce` stretched it.
     let mut schedule_end = cfg.steps;
@@ -356,6 +298,7 @@ pub fn finetune(
     let mut step = 0;
     let mut phases = StepPhases {
         images_on_device: resident,
+        params_on_device: on_device.is_some(),
         ..StepPhases::default()
     };
     while step < schedule_end + cfg.extra_steps {
@@ -377,7 +320,10 @@ pub fn finetune(
                 picked.push(v);
             }
         }
-        let renders = renderer.render_views(&g, &picked)?;
+        let renders = match &on_device {
+            Some(d) => renderer.render_views_from(&g, d.scene(), &picked)?,
+            None => renderer.render_views(&g, &picked)?,
+        };
         let dims: Vec<(usize, usize)> = picked
             .iter()
             .map(|&v| {
@@ -415,20 +361,29 @@ pub fn finetune(
             (0..g.len()).map(|_| rng.uniform() < f).collect()
         });
         // The model attack "parameter noise" (drawn only when enabled, likewise).
-        let noised: Option<Gaussians> = (cfg.eot_noise_probability > 0.0
+        let noised: Option<ModelAttack> = (cfg.eot_noise_probability > 0.0
             && rng.uniform() < p_attack * f64::from(cfg.eot_noise_probability))
-        .then(|| {
-            let attack = ModelAttack::Noise {
-                sigma: cfg.eot_noise_std.sqrt(),
-                position_scale: 1.0,
-                seed: rng.next_u64(),
-            };
-            attack.apply(&g).expect("σ validated above")
+        .then(|| ModelAttack::Noise {
+            sigma: cfg.eot_noise_std.sqrt(),
+            position_scale: 1.0,
+            seed: rng.next_u64(),
         });
-        let wm_renders = match (&noised, &removed) {
-            (Some(n), r) => Some(renderer.rasterise_views(n, &picked, r.as_deref())?),
-            (None, Some(r)) => Some(renderer.render_views_without(&g, &picked, r)?),
-            (None, None) => None,
+        let noised = match noised {
+            Some(attack) => {
+                if let Some(d) = &on_device {
+                    g = d.read()?; // the attack copies the current scene
+                }
+                Some(attack.apply(&g).expect("σ validated above"))
+            }
+            None => None,
+        };
+        let wm_renders = match (&noised, &removed, &on_device) {
+            (Some(n), r, _) => Some(renderer.rasterise_views(n, &picked, r.as_deref())?),
+            (None, Some(r), Some(d)) => {
+                Some(renderer.render_views_from(&g, &d.without(r)?, &picked)?)
+            }
+            (None, Some(r), None) => Some(renderer.render_views_without(&g, &picked, r)?),
+            (None, None, _) => None,
         };
         let wm_frames = wm_renders.as_ref().unwrap_or(&renders);
         StepPhases::lap(&mut phases.render, &mut mark);
@@ -519,69 +474,83 @@ pub fn finetune(
         // (burn runs lazily on a GPU: the decoder's time shows where its results are read.)
         StepPhases::lap(&mut phases.watermark, &mut mark);
 
-        // Both routes back through each render, summed over the step's views.
-        let (mut grad_wm, grad_vis) =
-            routes::backward(&renderer, &g, &renders, wm_renders.as_deref(), &d_images)?;
-        StepPhases::lap(&mut phases.backward, &mut mark);
-        for (s, n) in wm_norm_sum
-            .iter_mut()
-            .zip(grad_norms(&grad_wm, geometry_fixed))
-        {
-            *s += f64::from(n);
-        }
-
-        // Gate and step.
-        let lr = &cfg.lr;
-        let base = [lr.means, lr.dc, lr.rest, lr.opacity, lr.rotation, lr.scale];
+        // Gate and step: the watermark route's schedule.
         let t = (step.min(schedule_end) as f32 / schedule_end.max(1) as f32).min(1.0);
         let decay = cfg.wm_lr_min_fraction
             + (1.0 - cfg.wm_lr_min_fraction) * 0.5 * (1.0 + (std::f32::consts::PI * t).cos());
         let wm_s = cfg.wm_lr_scale * decay;
-        if cfg.coupled {
-            // Coupled: every Gaussian is on the watermark route, so every rate is scaled and
-            // decays with the route's.
-            add_into(&mut grad_wm, &grad_vis);
-            let scaled = base.map(|b| b * wm_s);
-            adam.step(&mut g, &grad_wm, |_| scaled);
+        if let Some(d) = &mut on_device {
+            // Both routes back through each render, summed over the step's views on the device;
+            // Adam steps there.
+            let (grad_wm, grad_vis) = routes::backward_on_device(
+                &renderer,
+                &g,
+                &renders,
+                wm_renders.as_deref(),
+                &d_images,
+            )?;
+            StepPhases::lap(&mut phases.backward, &mut mark);
+            d.step(&grad_wm, &grad_vis, geometry_fixed, wm_s)?;
         } else {
-            let mut routed = grad_vis;
-            for i in 0..g.len() {
-                if masks.is_carrier[i] {
-                    copy_one(&mut routed, &grad_wm, i);
-                }
+            // Both routes back through each render, summed over the step's views.
+            let (mut grad_wm, grad_vis) =
+                routes::backward(&renderer, &g, &renders, wm_renders.as_deref(), &d_images)?;
+            StepPhases::lap(&mut phases.backward, &mut mark);
+            for (s, n) in wm_norm_sum
+                .iter_mut()
+                .zip(grad_norms(&grad_wm, geometry_fixed))
+            {
+                *s += f64::from(n);
             }
-            let rates = |i: usize, s: f32| {
-                let m = masks.mask[i];
-                [
-                    base[0] * masks.position * s,
-                    base[1] * m[0] * s,
-                    base[2] * m[1] * s,
-                    base[3] * m[2] * s,
-                    base[4] * m[3] * s,
-                    base[5] * m[4] * s,
-                ]
-            };
-            let wm_rates = |i: usize| {
-                let mut r = rates(i, wm_s);
-                if !cfg.wm_geometry {
-                    r[0] = 0.0;
-                    r[3] = 0.0;
-                    r[4] = 0.0;
-                    r[5] = 0.0;
-                }
-                r
-            };
-            match cfg.step_rule {
-                StepRule::Adam => adam.step(&mut g, &routed, |i| {
+
+            let lr = &cfg.lr;
+            let base = [lr.means, lr.dc, lr.rest, lr.opacity, lr.rotation, lr.scale];
+            if cfg.coupled {
+                // Coupled: every Gaussian is on the watermark route, so every rate is scaled and
+                // decays with the route's.
+                add_into(&mut grad_wm, &grad_vis);
+                let scaled = base.map(|b| b * wm_s);
+                adam.step(&mut g, &grad_wm, |_| scaled);
+            } else {
+                let mut routed = grad_vis;
+                for i in 0..g.len() {
                     if masks.is_carrier[i] {
-                        wm_rates(i)
-                    } else {
-                        rates(i, 1.0)
+                        copy_one(&mut routed, &grad_wm, i);
                     }
-                }),
-                StepRule::RouteNormalized => {
-                    route.step(&mut g, &routed, &masks.is_carrier, wm_rates);
-                    vis_route.step(&mut g, &routed, &is_compensator, |i| rates(i, 1.0));
+                }
+                let rates = |i: usize, s: f32| {
+                    let m = masks.mask[i];
+                    [
+                        base[0] * masks.position * s,
+                        base[1] * m[0] * s,
+                        base[2] * m[1] * s,
+                        base[3] * m[2] * s,
+                        base[4] * m[3] * s,
+                        base[5] * m[4] * s,
+                    ]
+                };
+                let wm_rates = |i: usize| {
+                    let mut r = rates(i, wm_s);
+                    if !cfg.wm_geometry {
+                        r[0] = 0.0;
+                        r[3] = 0.0;
+                        r[4] = 0.0;
+                        r[5] = 0.0;
+                    }
+                    r
+                };
+                match cfg.step_rule {
+                    StepRule::Adam => adam.step(&mut g, &routed, |i| {
+                        if masks.is_carrier[i] {
+                            wm_rates(i)
+                        } else {
+                            rates(i, 1.0)
+                        }
+                    }),
+                    StepRule::RouteNormalized => {
+                        route.step(&mut g, &routed, &masks.is_carrier, wm_rates);
+                        vis_route.step(&mut g, &routed, &is_compensator, |i| rates(i, 1.0));
+                    }
                 }
             }
         }
@@ -594,7 +563,10 @@ pub fn finetune(
         };
         let projection = if cfg.target_psnr > 0.0 && psnr < cfg.target_psnr {
             let f = 10f32.powf((psnr - cfg.target_psnr) / 20.0);
-            shrink_offsets(&mut g, scene, bounded, f);
+            match &on_device {
+                Some(d) => d.shrink(f)?,
+                None => shrink_offsets(&mut g, scene, bounded, f),
+            }
             f
         } else {
             1.0
@@ -629,6 +601,9 @@ pub fn finetune(
             && ((step - schedule_end).is_multiple_of(cfg.check_every.max(1))
                 || step == schedule_end + cfg.extra_steps)
         {
+            if let Some(d) = &on_device {
+                g = d.read()?;
+            }
             let c = ViewsCheck::new(
                 step,
                 &views_logits(&g, views, model, render_opts, &cfg.rasterizer)?,
@@ -641,6 +616,13 @@ pub fn finetune(
             }
         }
         StepPhases::lap(&mut phases.update, &mut mark);
+    }
+
+    if let Some(d) = &on_device {
+        g = d.read()?;
+        for (s, n) in wm_norm_sum.iter_mut().zip(d.read_norms()?) {
+            *s = f64::from(n);
+        }
     }
 
     // The per-step bound acts on the renders before each update; hold it exactly at the end:
@@ -736,15 +718,4 @@ fn stretch_check(cfg: &FinetuneConfig, log: &[StepLog]) -> StretchCheck {
         threshold: cfg.stretch_bce,
         stretched: mean > f64::from(cfg.stretch_bce),
     }
-}
-
-/// Copies every parameter of Gaussian `i` from `src` into `dst`.
-fn copy_one(dst: &mut Gaussians, src: &Gaussians, i: usize) {
-    let rl = dst.rest_len();
-    dst.means[i] = src.means[i];
-    dst.log_scales[i] = src.log_scales[i];
-    dst.rotations[i] = src.rotations[i];
-    dst.opacity_logits[i] = src.opacity_logits[i];
-    dst.sh_dc[i] = src.sh_dc[i];
-    dst.sh_rest[i * rl..(i + 1) * rl].copy_from_slice(&src.sh_rest[i * rl..(i + 1) * rl]);
 }

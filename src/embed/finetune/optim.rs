@@ -224,3 +224,93 @@ impl RouteMomentum {
         }
     }
 }
+
+/// Scales the offsets of the Gaussians in `on` from `base` by `f` (quaternions renormalised).
+pub(super) fn shrink_offsets(g: &mut Gaussians, base: &Gaussians, on: &[bool], f: f32) {
+    let rl = g.rest_len();
+    // Unchanged values stay bit-identical (a replayed view checks that the geometry is).
+    let lerp = |x: &mut f32, x0: f32| {
+        if *x != x0 {
+            *x = x0 + f * (*x - x0);
+        }
+    };
+    for i in (0..g.len()).filter(|&i| on[i]) {
+        for k in 0..3 {
+            lerp(&mut g.means[i][k], base.means[i][k]);
+            lerp(&mut g.sh_dc[i][k], base.sh_dc[i][k]);
+            lerp(&mut g.log_scales[i][k], base.log_scales[i][k]);
+        }
+        for k in i * rl..(i + 1) * rl {
+            lerp(&mut g.sh_rest[k], base.sh_rest[k]);
+        }
+        lerp(&mut g.opacity_logits[i], base.opacity_logits[i]);
+        if g.rotations[i] == base.rotations[i] {
+            continue; // unchanged quaternions stay bit-identical
+        }
+        for k in 0..4 {
+            lerp(&mut g.rotations[i][k], base.rotations[i][k]);
+        }
+        let q = g.rotations[i];
+        let n = q.iter().map(|v| v * v).sum::<f32>().sqrt();
+        if n > 1e-12 && n.is_finite() {
+            g.rotations[i] = q.map(|v| v / n);
+        }
+    }
+}
+
+/// Adds `b` to `a`, parameter by parameter.
+pub(super) fn add_into(a: &mut Gaussians, b: &Gaussians) {
+    let zip3 = |x: &mut [[f32; 3]], y: &[[f32; 3]]| {
+        for (p, q) in x.iter_mut().zip(y) {
+            for k in 0..3 {
+                p[k] += q[k];
+            }
+        }
+    };
+    zip3(&mut a.means, &b.means);
+    zip3(&mut a.log_scales, &b.log_scales);
+    zip3(&mut a.sh_dc, &b.sh_dc);
+    for (p, q) in a.rotations.iter_mut().zip(&b.rotations) {
+        for k in 0..4 {
+            p[k] += q[k];
+        }
+    }
+    for (p, q) in a.opacity_logits.iter_mut().zip(&b.opacity_logits) {
+        *p += q;
+    }
+    for (p, q) in a.sh_rest.iter_mut().zip(&b.sh_rest) {
+        *p += q;
+    }
+}
+
+/// ‖∂L/∂θ_i‖₂ over every parameter of Gaussian i, or over its SH coefficients only when
+/// `colour_only` (the parameters colour-only finetuning moves).
+pub(super) fn grad_norms(g: &Gaussians, colour_only: bool) -> Vec<f32> {
+    let rl = g.rest_len();
+    (0..g.len())
+        .map(|i| {
+            let mut s = 0.0f64;
+            let mut add = |v: f32| s += f64::from(v) * f64::from(v);
+            if !colour_only {
+                g.means[i].iter().for_each(|&v| add(v));
+                g.log_scales[i].iter().for_each(|&v| add(v));
+                g.rotations[i].iter().for_each(|&v| add(v));
+                add(g.opacity_logits[i]);
+            }
+            g.sh_dc[i].iter().for_each(|&v| add(v));
+            g.sh_rest[i * rl..(i + 1) * rl].iter().for_each(|&v| add(v));
+            s.sqrt() as f32
+        })
+        .collect()
+}
+
+/// Copies every parameter of Gaussian `i` from `src` into `dst`.
+pub(super) fn copy_one(dst: &mut Gaussians, src: &Gaussians, i: usize) {
+    let rl = dst.rest_len();
+    dst.means[i] = src.means[i];
+    dst.log_scales[i] = src.log_scales[i];
+    dst.rotations[i] = src.rotations[i];
+    dst.opacity_logits[i] = src.opacity_logits[i];
+    dst.sh_dc[i] = src.sh_dc[i];
+    dst.sh_rest[i * rl..(i + 1) * rl].copy_from_slice(&src.sh_rest[i * rl..(i + 1) * rl]);
+}

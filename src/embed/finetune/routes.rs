@@ -12,10 +12,12 @@ use burn::tensor::{Device, Tensor};
 use rayon::prelude::*;
 
 use super::losses::{from_planar, visual_loss_tensor};
+use super::optim::add_into;
 use super::views::{Frame, Renderer};
 use super::visual::visual_loss;
-use super::{FinetuneError, LossWeights, add_into};
+use super::{FinetuneError, LossWeights};
 use crate::render::RenderError;
+use crate::render::gpu::GpuGrads;
 use crate::scene::Gaussians;
 
 /// L_vis of a step's views.
@@ -181,6 +183,45 @@ impl Visual {
     }
 }
 
+/// [`backward`] for device-side gradients, left on the device: (∂L_wm/∂θ, ∂L_vis/∂θ), each
+/// summed over the step's views there.
+pub(super) fn backward_on_device(
+    renderer: &Renderer,
+    g: &Gaussians,
+    renders: &[Frame],
+    wm_renders: Option<&[Frame]>,
+    d_images: &ImageGrads,
+) -> Result<(GpuGrads, GpuGrads), FinetuneError> {
+    let ImageGrads::Device(d) = d_images else {
+        return Err(RenderError::Device("host gradients for the device's optimiser".into()).into());
+    };
+    let (wm, vis) = route_passes(renders, wm_renders, d);
+    Ok((
+        renderer.backward_summed_on_device(g, &wm)?,
+        renderer.backward_summed_on_device(g, &vis)?,
+    ))
+}
+
+/// Each route's (frame, ∂L/∂image) over the step's views.
+#[allow(clippy::type_complexity)]
+fn route_passes<'a>(
+    renders: &'a [Frame],
+    wm_renders: Option<&'a [Frame]>,
+    d: &[[Tensor<4>; 2]],
+) -> (Vec<(&'a Frame, Tensor<4>)>, Vec<(&'a Frame, Tensor<4>)>) {
+    let wm = d
+        .iter()
+        .enumerate()
+        .map(|(k, [d_wm, _])| (wm_renders.map_or(&renders[k], |wm| &wm[k]), d_wm.clone()))
+        .collect();
+    let vis = renders
+        .iter()
+        .zip(d)
+        .map(|(r, [_, d_vis])| (r, d_vis.clone()))
+        .collect();
+    (wm, vis)
+}
+
 /// Both routes' ∂L/∂image back through each render — the watermark route's through
 /// `wm_renders` where the EOT term read other renders of the step's views — summed over the
 /// step's views: (∂L_wm/∂θ, ∂L_vis/∂θ). On the device each route's views are summed there and
@@ -195,16 +236,7 @@ pub(super) fn backward(
     let wm_frame = |k: usize| wm_renders.map_or(&renders[k], |wm| &wm[k]);
     match d_images {
         ImageGrads::Device(d) => {
-            let wm: Vec<(&Frame, Tensor<4>)> = d
-                .iter()
-                .enumerate()
-                .map(|(k, [d_wm, _])| (wm_frame(k), d_wm.clone()))
-                .collect();
-            let vis: Vec<(&Frame, Tensor<4>)> = renders
-                .iter()
-                .zip(d)
-                .map(|(r, [_, d_vis])| (r, d_vis.clone()))
-                .collect();
+            let (wm, vis) = route_passes(renders, wm_renders, d);
             Ok((
                 renderer.backward_summed(g, &wm)?,
                 renderer.backward_summed(g, &vis)?,

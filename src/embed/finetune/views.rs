@@ -9,7 +9,7 @@ use crate::decoder::WatermarkModel;
 use crate::decoder::eval::decode_images;
 use std::sync::Arc;
 
-use crate::render::gpu::{GpuRendered, GpuScene, Rasterizer};
+use crate::render::gpu::{GpuGrads, GpuRendered, GpuRenderer, GpuScene, Rasterizer};
 use crate::render::{self, RenderError, RenderOptions, Rendered, Replay};
 use crate::scene::{Camera, Gaussians};
 
@@ -212,6 +212,19 @@ impl<'a> Renderer<'a> {
         let up = self.upload(g)?;
         vs.iter()
             .map(|&v| self.render_with(g, v, up.as_ref(), self.resident))
+            .collect()
+    }
+
+    /// Views `vs` rendered on the GPU from `up` (another scene's upload of `g`'s shape: the
+    /// device's live parameters, or a removal's copy of them).
+    pub fn render_views_from(
+        &mut self,
+        g: &Gaussians,
+        up: &GpuScene,
+        vs: &[usize],
+    ) -> Result<Vec<Frame>, RenderError> {
+        vs.iter()
+            .map(|&v| self.render_with(g, v, Some(up), self.resident))
             .collect()
     }
 
@@ -429,6 +442,24 @@ impl<'a> Renderer<'a> {
         g: &Gaussians,
         passes: &[(&Frame, burn::tensor::Tensor<4>)],
     ) -> Result<Gaussians, RenderError> {
+        let (gpu, sum) = self.sum_on_device(g, passes)?;
+        Ok(gpu.read_grads(g, &sum)?)
+    }
+
+    /// [`Self::backward_summed`] left on the device (for its Adam step).
+    pub fn backward_summed_on_device(
+        &self,
+        g: &Gaussians,
+        passes: &[(&Frame, burn::tensor::Tensor<4>)],
+    ) -> Result<GpuGrads, RenderError> {
+        Ok(self.sum_on_device(g, passes)?.1)
+    }
+
+    fn sum_on_device(
+        &self,
+        g: &Gaussians,
+        passes: &[(&Frame, burn::tensor::Tensor<4>)],
+    ) -> Result<(&GpuRenderer, GpuGrads), RenderError> {
         let Rasterizer::Gpu(gpu) = &self.rasterizer else {
             return Err(not_on_the_gpu());
         };
@@ -436,7 +467,7 @@ impl<'a> Renderer<'a> {
             .iter()
             .map(|(frame, d)| Ok((gpu_render(frame).ok_or_else(not_on_the_gpu)?, d.clone())))
             .collect::<Result<Vec<_>, RenderError>>()?;
-        Ok(gpu.backward_tensors_summed(g, &passes)?)
+        Ok((gpu, gpu.backward_tensors_summed_on_device(g, &passes)?))
     }
 }
 

@@ -3,7 +3,7 @@
 //! (per Gaussian, through the projection) to the CPU reference's [`Gradients`].
 
 use super::chunk::Sliced;
-use super::{GpuError, GpuRendered, GpuRenderer, GpuState, bind};
+use super::{GpuError, GpuGrads, GpuRendered, GpuRenderer, GpuState, bind};
 use crate::render::{Gradients, RenderError};
 use crate::scene::Gaussians;
 
@@ -66,7 +66,7 @@ impl GpuRenderer {
 
     /// Σ over `passes` of ∂L/∂θ — each pass a render of a scene shaped like `g` and ∂L/∂image
     /// filling its buffer (as [`Self::backward_with`]) — summed on the device in the passes'
-    /// order (`project_backward` adding to one buffer) and read back once.
+    /// order (`project_backward` adding to one buffer), left there.
     pub(super) fn backward_sum_with<'a>(
         &self,
         g: &Gaussians<f32>,
@@ -76,7 +76,7 @@ impl GpuRenderer {
                 Box<dyn FnOnce(&mut wgpu::CommandEncoder) -> Result<wgpu::Buffer, GpuError> + 'a>,
             ),
         >,
-    ) -> Result<Gaussians<f32>, GpuError> {
+    ) -> Result<GpuGrads, GpuError> {
         let passes: Vec<_> = passes.into_iter().collect();
         for (fwd, _) in &passes {
             check_shape(g, &fwd.state)?;
@@ -84,7 +84,7 @@ impl GpuRenderer {
         self.injected_fault()?;
         let n = g.len() as u64;
         let gs = 14 + g.rest_len() as u64;
-        let grads = self.scoped(|| {
+        let buf = self.scoped(|| {
             let grads = self.sliced_storage("gradients", (n * gs * 4).max(4))?;
             let aux = self.storage("aux", (n * 24).max(4))?;
             let mut encoder = self.device.create_command_encoder(&Default::default());
@@ -105,11 +105,35 @@ impl GpuRenderer {
                 )?;
                 keep.push(d_buf);
             }
-            let bytes = self.read(encoder, &[(&grads, 0, n * gs * 4)])?;
+            self.queue.submit([encoder.finish()]);
             drop(keep);
-            Ok(bytemuck::cast_slice::<u8, f32>(&bytes).to_vec())
+            Ok(grads)
         })?;
-        Ok(unpack(&grads, g))
+        Ok(GpuGrads {
+            buf,
+            n: g.len() as u32,
+            rest_len: g.rest_len(),
+        })
+    }
+
+    /// `grads` read back, as a scene shaped like `g`.
+    pub fn read_grads(
+        &self,
+        g: &Gaussians<f32>,
+        grads: &GpuGrads,
+    ) -> Result<Gaussians<f32>, GpuError> {
+        if grads.n as usize != g.len() || grads.rest_len != g.rest_len() {
+            return Err(RenderError::BadScene(format!(
+                "gradients of {} Gaussians for a scene of {}",
+                grads.n,
+                g.len()
+            ))
+            .into());
+        }
+        let bytes = (g.len() * (14 + g.rest_len()) * 4) as u64;
+        let encoder = self.device.create_command_encoder(&Default::default());
+        let data = self.scoped(|| self.read(encoder, &[(&grads.buf, 0, bytes)]))?;
+        Ok(unpack(bytemuck::cast_slice(&data), g))
     }
 
     /// The device work of [`Self::backward`]: parameter gradients and the auxiliary outputs,

@@ -7,7 +7,7 @@ use burn::backend::Wgpu;
 use burn::backend::wgpu::CubeTensor;
 use burn::tensor::Tensor;
 
-use super::{GpuError, GpuRendered, GpuRenderer};
+use super::{GpuError, GpuGrads, GpuRendered, GpuRenderer};
 use crate::render::{Gradients, RenderError};
 use crate::scene::Gaussians;
 
@@ -90,6 +90,16 @@ impl GpuRenderer {
         g: &Gaussians<f32>,
         passes: &[(&GpuRendered, Tensor<4>)],
     ) -> Result<Gaussians<f32>, GpuError> {
+        let sum = self.backward_tensors_summed_on_device(g, passes)?;
+        self.read_grads(g, &sum)
+    }
+
+    /// [`Self::backward_tensors_summed`] left on the device, for [`Self::adam_step`].
+    pub fn backward_tensors_summed_on_device(
+        &self,
+        g: &Gaussians<f32>,
+        passes: &[(&GpuRendered, Tensor<4>)],
+    ) -> Result<GpuGrads, GpuError> {
         type Fill<'a> =
             Box<dyn FnOnce(&mut wgpu::CommandEncoder) -> Result<wgpu::Buffer, GpuError> + 'a>;
         let fills = passes

@@ -18,11 +18,13 @@ mod choice;
 mod chunk;
 mod forward;
 mod interop;
+mod params;
 mod sort;
 
 pub use choice::{DeviceRequest, PreparedScene, Rasterizer, shared};
 use forward::GpuState;
 pub use forward::{GpuRendered, GpuScene};
+pub use params::{DeviceParams, GpuGrads, StepPlan};
 
 use wgpu::util::DeviceExt;
 
@@ -90,6 +92,15 @@ struct Pipelines {
     tile_ranges: wgpu::ComputePipeline,
     raster: wgpu::ComputePipeline,
     sort: sort::SortPipelines,
+    optim: OptimPipelines,
+}
+
+/// The optimiser's kernels (`shaders/optim.wgsl`).
+struct OptimPipelines {
+    adam_step: wgpu::ComputePipeline,
+    grad_norm: wgpu::ComputePipeline,
+    shrink: wgpu::ComputePipeline,
+    mask_removed: wgpu::ComputePipeline,
 }
 
 /// Runs a wgpu future to completion (native wgpu resolves them without an executor).
@@ -317,6 +328,11 @@ impl GpuRenderer {
                 include_str!("../../../shaders/backward.wgsl")
             ),
         );
+        let optim = shader(
+            &device,
+            "optim",
+            include_str!("../../../shaders/optim.wgsl"),
+        );
         Pipelines {
             project: pipeline(&device, &project, "project"),
             project_backward: pipeline(&device, &project, "project_backward"),
@@ -327,6 +343,12 @@ impl GpuRenderer {
             tile_ranges: pipeline(&device, &raster, "tile_ranges"),
             raster: pipeline(&device, &raster, "raster"),
             sort: sort::SortPipelines::new(&device),
+            optim: OptimPipelines {
+                adam_step: pipeline(&device, &optim, "adam_step"),
+                grad_norm: pipeline(&device, &optim, "grad_norm"),
+                shrink: pipeline(&device, &optim, "shrink"),
+                mask_removed: pipeline(&device, &optim, "mask_removed"),
+            },
         }
     }
 
