@@ -99,7 +99,7 @@ run)
   echo
   echo "Finetuning's steps by part (s, summed; report timings.steps): where a step's time goes."
   echo
-  echo "| device | seconds | bits on the last step's views | PSNR (last step) | finetuning s | render | watermark | visual | backward | update | images on the device |"
+  echo "| device | seconds | bits on the last step's views | PSNR (last step) | finetuning s | render | watermark | visual | backward | update | on the device |"
   echo "|---|---|---|---|---|---|---|---|---|---|---|"
   for device in wgpu cpu; do
     [ -f "$dir/scenes/donut/fused.ply" ] || break
@@ -119,7 +119,8 @@ parts = " | ".join(f"{steps[k]:.1f}" if k in steps else "?"
                    for k in ("render", "watermark", "visual", "backward", "update"))
 print(f"| {sys.argv[2]} | {float(sys.argv[4]) - float(sys.argv[3]):.0f} | "
       f"{'?' if acc is None else f'{100 * acc:.1f} %'} | {'?' if psnr is None else f'{psnr:.2f} dB'} | "
-      f"{timings.get('finetune', 0):.1f} | {parts} | {'yes' if steps.get('images_on_device') else 'no'} |")
+      f"{timings.get('finetune', 0):.1f} | {parts} | "
+      f"{'images, gradients, Adam' if steps.get('params_on_device') else 'images' if steps.get('images_on_device') else 'nothing'} |")
 EOF
     else
       echo "| $device | failed or over 200 s (see donut-$device.log) | | | | | | | | | |"
