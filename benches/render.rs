@@ -1,11 +1,14 @@
 //! Rasterizer benchmarks: forward and forward + backward at 800×800 on synthetic scenes of 10k,
-//! 100k and 1M Gaussians, and on the real scenes in ../shared/data when present.
+//! 100k and 1M Gaussians, and on the real scenes in ../shared/data when present; on the GPU path
+//! also a finetuning step's GPU work with everything on the device (render, backward from a
+//! burn tensor, gradients summed there, one Adam step).
 //!
 //! Run: `cargo bench --bench render` (add `-- --quick` for fewer repetitions, and words such as
 //! `-- 100k donut "ply io"` to run only the benchmarks whose names contain them). Prints a Markdown
 //! table; figures are recorded in docs/BENCHMARKS.md.
 
-use splatmark::render::gpu::{AdapterChoice, GpuRenderer, shared};
+use burn::tensor::{Tensor, TensorData};
+use splatmark::render::gpu::{AdapterChoice, GpuRenderer, StepPlan, shared};
 use splatmark::render::{RenderOptions, backward, render};
 use splatmark::scene::orbit::{OrbitOptions, orbit_cameras};
 use splatmark::scene::{
@@ -61,10 +64,10 @@ fn bench(name: &str, g: &Gaussians, cam: &Camera, reps: usize, gpu: Option<&GpuR
     }
     // The GPU path: upload, every kernel, and the image read back (what a caller waits for);
     // and the same render of a scene uploaded once before.
-    let gpu_ms = gpu.map_or("– | – | –".to_string(), |r| {
+    let gpu_ms = gpu.map_or("– | – | – | –".to_string(), |r| {
         let warm = match r.render(g, cam, &opts) {
             Ok(w) => w,
-            Err(e) => return format!("{e} | – | –"),
+            Err(e) => return format!("{e} | – | – | –"),
         };
         let (mut fwd, mut both, mut uploaded) = (Vec::new(), Vec::new(), Vec::new());
         let up = r.upload(g, &opts).expect("gpu upload");
@@ -82,11 +85,12 @@ fn bench(name: &str, g: &Gaussians, cam: &Camera, reps: usize, gpu: Option<&GpuR
             both.push(t1.elapsed());
         }
         format!(
-            "{:.1} ({} entries) | {:.1} | {:.1}",
+            "{:.1} ({} entries) | {:.1} | {:.1} | {}",
             median(fwd),
             warm.tile_entries,
             median(uploaded),
-            median(both)
+            median(both),
+            device_step(r, g, cam, &d_image, reps)
         )
     });
     println!(
@@ -99,6 +103,49 @@ fn bench(name: &str, g: &Gaussians, cam: &Camera, reps: usize, gpu: Option<&GpuR
         median(fwd),
         median(both)
     );
+}
+
+/// A finetuning step's GPU work for one view with everything on the device (what a GPU job
+/// runs): render from the live parameters (image kept there), ∂L/∂image from a burn tensor
+/// into the backward, the gradients summed on the device, one Adam step of every parameter —
+/// nothing read back but the render's entry count (the Adam step waits for the device).
+fn device_step(
+    r: &GpuRenderer,
+    g: &Gaussians,
+    cam: &Camera,
+    d_image: &[[f32; 3]],
+    reps: usize,
+) -> String {
+    let n = g.len();
+    let plan = StepPlan {
+        rates: vec![[1e-4, 2.5e-3, 1.25e-4, 2.5e-2, 1e-3, 5e-3]; n],
+        carrier: vec![true; n],
+        bounded: vec![true; n],
+    };
+    let (device, mut params) = match (r.burn_device(), r.upload_params(g, g, &plan)) {
+        (Ok(d), Ok(p)) => (d, p),
+        (Err(e), _) | (_, Err(e)) => return e.to_string(),
+    };
+    let (w, h) = (cam.width as usize, cam.height as usize);
+    let planar: Vec<f32> = (0..3)
+        .flat_map(|c| d_image.iter().map(move |p| p[c]))
+        .collect();
+    let d = Tensor::<4>::from_data(TensorData::new(planar, [1, 3, h, w]), &device);
+    let opts = RenderOptions::default();
+    let mut times = Vec::new();
+    for _ in 0..reps {
+        let t0 = Instant::now();
+        let step = (|| {
+            let f = r.render_resident(params.scene(), cam, &opts)?;
+            let sum = r.backward_tensors_summed_on_device(g, &[(&f, d.clone())])?;
+            r.adam_step(&mut params, &sum, &sum, true, 1.0)
+        })();
+        if let Err(e) = step {
+            return e.to_string();
+        }
+        times.push(t0.elapsed());
+    }
+    format!("{:.1}", median(times))
 }
 
 /// Benchmarks whose name contains one of the non-flag arguments (all when there are none).
@@ -126,7 +173,7 @@ fn main() {
         }
     };
     println!(
-        "threads: {}, reps: {reps} (median), wgpu adapter: {}\n\n| scene | Gaussians | image | visible | tile entries | forward ms | forward+backward ms | wgpu forward ms | wgpu forward, scene uploaded ms | wgpu forward+backward ms |\n|---|---|---|---|---|---|---|---|---|---|",
+        "threads: {}, reps: {reps} (median), wgpu adapter: {}\n\n| scene | Gaussians | image | visible | tile entries | forward ms | forward+backward ms | wgpu forward ms | wgpu forward, scene uploaded ms | wgpu forward+backward ms | wgpu step on the device ms |\n|---|---|---|---|---|---|---|---|---|---|---|",
         rayon::current_num_threads(),
         gpu.as_ref().map_or("none".to_string(), |r| format!(
             "{} ({:?}, {:?})",
