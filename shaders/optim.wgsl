@@ -85,6 +85,19 @@ fn local_index(gid: vec3<u32>, nwg: vec3<u32>) -> u32 {
     return gid.x + gid.y * nwg.x * 256u;
 }
 
+// The quaternion of the Gaussian whose parameters start at `at`, made unit (left alone when its
+// norm is 0 or not finite), in the host's order of operations.
+fn normalise_quaternion(at: u32) {
+    let q = vec4<f32>(params[at + 6u], params[at + 7u], params[at + 8u], params[at + 9u]);
+    let n = sqrt(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w);
+    if (n > 1e-12 && n < 3.4e38) {
+        params[at + 6u] = q.x / n;
+        params[at + 7u] = q.y / n;
+        params[at + 8u] = q.z / n;
+        params[at + 9u] = q.w / n;
+    }
+}
+
 @compute @workgroup_size(256)
 fn adam_step(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let local = local_index(gid, nwg);
@@ -116,14 +129,7 @@ fn adam_step(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
     }
     // Updated quaternions stay unit; the others bit-identical.
     if (rates[i * 6u + 4u] * s != 0.0) {
-        let q = vec4<f32>(params[at + 6u], params[at + 7u], params[at + 8u], params[at + 9u]);
-        let n = sqrt(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w);
-        if (n > 1e-12 && n < 3.4e38) {
-            params[at + 6u] = q.x / n;
-            params[at + 7u] = q.y / n;
-            params[at + 8u] = q.z / n;
-            params[at + 9u] = q.w / n;
-        }
+        normalise_quaternion(at);
     }
 }
 
@@ -177,14 +183,7 @@ fn shrink(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
     for (var k = 6u; k < 10u; k = k + 1u) {
         lerp_moved(at + k);
     }
-    let q = vec4<f32>(params[at + 6u], params[at + 7u], params[at + 8u], params[at + 9u]);
-    let n = sqrt(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w);
-    if (n > 1e-12 && n < 3.4e38) {
-        params[at + 6u] = q.x / n;
-        params[at + 7u] = q.y / n;
-        params[at + 8u] = q.z / n;
-        params[at + 9u] = q.w / n;
-    }
+    normalise_quaternion(at);
 }
 
 // A copy of the scene (already in `params`) with the removed Gaussians transparent:

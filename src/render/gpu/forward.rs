@@ -152,10 +152,7 @@ impl GpuRenderer {
         camera: &Camera,
         opts: &RenderOptions,
     ) -> Result<GpuRendered, GpuError> {
-        check_camera(camera, opts)?;
-        check_override(scene, opts)?;
-        self.injected_fault()?;
-        self.scoped(|| self.render_checked(scene, camera, opts, true))
+        self.render_scene(scene, camera, opts, true)
     }
 
     /// [`Self::render_uploaded`] without reading the image back: it stays on the device for
@@ -167,10 +164,21 @@ impl GpuRenderer {
         camera: &Camera,
         opts: &RenderOptions,
     ) -> Result<GpuRendered, GpuError> {
+        self.render_scene(scene, camera, opts, false)
+    }
+
+    /// The checks, then the render (its image read back when `read_image`).
+    fn render_scene(
+        &self,
+        scene: &GpuScene,
+        camera: &Camera,
+        opts: &RenderOptions,
+        read_image: bool,
+    ) -> Result<GpuRendered, GpuError> {
         check_camera(camera, opts)?;
         check_override(scene, opts)?;
         self.injected_fault()?;
-        self.scoped(|| self.render_checked(scene, camera, opts, false))
+        self.scoped(|| self.render_checked(scene, camera, opts, read_image))
     }
 
     /// The image of `r` (linear RGB, row-major, not clamped), read from the device.
