@@ -790,6 +790,11 @@ async fn a_gpu_lost_mid_job_fails_the_attempt_and_the_retry_completes_on_the_gpu
         .await
         .unwrap();
     assert_eq!(meta["report"]["rasterizer"], adapter, "{meta}");
+    // A GPU worker's decoder is on the rasterizer's device, so the steps ran there: images,
+    // gradients and the Gaussians' Adam state (the job defaults step by Adam).
+    let steps = &meta["report"]["timings"]["steps"];
+    assert_eq!(steps["images_on_device"], true, "{steps}");
+    assert_eq!(steps["params_on_device"], true, "{steps}");
     let m = t.metrics().await;
     assert!(
         m.contains(&format!(
