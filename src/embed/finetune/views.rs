@@ -152,12 +152,18 @@ pub(super) enum Frame {
 }
 
 impl Frame {
-    /// Linear RGB, row-major, not clamped.
+    /// Linear RGB, row-major, not clamped (a GPU render kept on the device has none here).
     pub fn image(&self) -> &[[f32; 3]] {
         match self {
             Frame::Raster(r) => &r.image,
             Frame::Replayed { image, .. } | Frame::Removed { image, .. } => image,
-            Frame::Gpu(r) => &r.image,
+            Frame::Gpu(r) => {
+                debug_assert!(
+                    !r.image.is_empty(),
+                    "a render kept on the device has no host image (Renderer::image_tensor)"
+                );
+                &r.image
+            }
             Frame::Masked { frame, .. } => frame.image(),
         }
     }
