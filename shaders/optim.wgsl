@@ -7,19 +7,7 @@
 // (mean 3, log-scale 3, quaternion 4, opacity logit 1, SH DC 3, the rest of the SH), the layout of
 // `project.wgsl`'s `params` without a colour override. They are bound a chunk of Gaussians at a
 // time (`src/render/gpu/chunk.rs`); with one layout every sliced binding's chunk starts at the
-// same float, `chunk.params_at`.
-
-struct Chunk {
-    first: u32,
-    count: u32,
-    params_at: u32,
-    grads_at: u32,
-    accumulate: u32,
-    pad0: u32,
-    pad1: u32,
-    pad2: u32,
-}
-@group(0) @binding(8) var<uniform> chunk: Chunk;
+// same float, `chunk.params_at` (`chunk.wgsl`).
 
 struct Step {
     // Floats a Gaussian (14 + rest).

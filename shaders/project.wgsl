@@ -15,24 +15,8 @@
 // the total.
 @group(0) @binding(4) var<storage, read_write> counts: array<u32>;
 
-// The Gaussians one dispatch covers (`src/render/gpu/chunk.rs`): global indices [first, first +
-// count). `params` (and `grads`) are bound a chunk at a time, from an aligned offset, so a scene
-// may exceed one storage binding: Gaussian `first`'s parameters start at float `params_at` of the
-// `params` binding, its gradients at float `grads_at` of the `grads` binding. `splats`, `tiles`,
-// `counts` and `aux` are bound whole and indexed by the global index.
-struct Chunk {
-    first: u32,
-    count: u32,
-    params_at: u32,
-    grads_at: u32,
-    // `project_backward` adds its gradients to what `grads` holds (a sum over views) instead
-    // of writing them.
-    accumulate: u32,
-    pad0: u32,
-    pad1: u32,
-    pad2: u32,
-}
-@group(0) @binding(8) var<uniform> chunk: Chunk;
+// `chunk`, the Gaussians one dispatch covers: `chunk.wgsl`. `splats`, `tiles`, `counts` and
+// `aux` are bound whole and indexed by the global index.
 
 const C0: f32 = 0.28209479177387814;
 const C1: f32 = 0.4886025119029199;

@@ -308,6 +308,7 @@ impl GpuRenderer {
             "project",
             concat!(
                 include_str!("../../../shaders/common.wgsl"),
+                include_str!("../../../shaders/chunk.wgsl"),
                 include_str!("../../../shaders/project.wgsl")
             ),
         );
@@ -331,7 +332,10 @@ impl GpuRenderer {
         let optim = shader(
             &device,
             "optim",
-            include_str!("../../../shaders/optim.wgsl"),
+            concat!(
+                include_str!("../../../shaders/chunk.wgsl"),
+                include_str!("../../../shaders/optim.wgsl")
+            ),
         );
         Pipelines {
             project: pipeline(&device, &project, "project"),
