@@ -3,6 +3,7 @@
 //! (per Gaussian, through the projection) to the CPU reference's [`Gradients`].
 
 use super::chunk::Sliced;
+use super::forward::unpack;
 use super::{GpuError, GpuGrads, GpuRendered, GpuRenderer, GpuState, bind};
 use crate::render::{Gradients, RenderError};
 use crate::scene::Gaussians;
@@ -57,7 +58,7 @@ impl GpuRenderer {
             screen_xy[i] = [a[4], a[5]];
         }
         Ok(Gradients {
-            params: unpack(&grads, g),
+            params: unpack(&grads, g.len(), g.rest_len(), g.sh_degree),
             colors,
             blend_weights,
             screen_xy,
@@ -133,7 +134,12 @@ impl GpuRenderer {
         let bytes = (g.len() * (14 + g.rest_len()) * 4) as u64;
         let encoder = self.device.create_command_encoder(&Default::default());
         let data = self.scoped(|| self.read(encoder, &[(&grads.buf, 0, bytes)]))?;
-        Ok(unpack(bytemuck::cast_slice(&data), g))
+        Ok(unpack(
+            bytemuck::cast_slice(&data),
+            g.len(),
+            g.rest_len(),
+            g.sh_degree,
+        ))
     }
 
     /// The device work of [`Self::backward`]: parameter gradients and the auxiliary outputs,
@@ -237,30 +243,4 @@ fn check_shape(g: &Gaussians<f32>, st: &GpuState) -> Result<(), GpuError> {
         .into());
     }
     Ok(())
-}
-
-/// Parameter gradients as the device lays them out (14 + rest floats a Gaussian) → a scene.
-fn unpack(grads: &[f32], g: &Gaussians<f32>) -> Gaussians<f32> {
-    let (n, rl) = (g.len(), g.rest_len());
-    let gs = 14 + rl;
-    let z3 = [0.0f32; 3];
-    let mut params = Gaussians {
-        means: vec![z3; n],
-        log_scales: vec![z3; n],
-        rotations: vec![[0.0; 4]; n],
-        opacity_logits: vec![0.0; n],
-        sh_dc: vec![z3; n],
-        sh_rest: vec![0.0; n * rl],
-        sh_degree: g.sh_degree,
-    };
-    for i in 0..n {
-        let p = &grads[i * gs..(i + 1) * gs];
-        params.means[i] = [p[0], p[1], p[2]];
-        params.log_scales[i] = [p[3], p[4], p[5]];
-        params.rotations[i] = [p[6], p[7], p[8], p[9]];
-        params.opacity_logits[i] = p[10];
-        params.sh_dc[i] = [p[11], p[12], p[13]];
-        params.sh_rest[i * rl..(i + 1) * rl].copy_from_slice(&p[14..]);
-    }
-    params
 }

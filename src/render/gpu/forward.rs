@@ -358,6 +358,23 @@ impl GpuRenderer {
     }
 }
 
+/// Values laid out as [`GpuRenderer::upload`] packs a scene without a colour override (14 +
+/// `rest_len` floats a Gaussian: mean, log-scale, quaternion, opacity logit, SH DC, the rest) —
+/// parameters, or their gradients — back into a scene of `n` Gaussians.
+pub(super) fn unpack(values: &[f32], n: usize, rest_len: usize, sh_degree: u8) -> Gaussians<f32> {
+    let floats = 14 + rest_len;
+    let mut g = Gaussians::with_capacity(n, sh_degree);
+    for q in values.chunks_exact(floats).take(n) {
+        g.means.push([q[0], q[1], q[2]]);
+        g.log_scales.push([q[3], q[4], q[5]]);
+        g.rotations.push([q[6], q[7], q[8], q[9]]);
+        g.opacity_logits.push(q[10]);
+        g.sh_dc.push([q[11], q[12], q[13]]);
+        g.sh_rest.extend_from_slice(&q[14..]);
+    }
+    g
+}
+
 /// A render asks for a colour override exactly when the upload carries one.
 fn check_override(scene: &GpuScene, opts: &RenderOptions) -> Result<(), GpuError> {
     if opts.colors.is_some() != scene.overrides {

@@ -6,6 +6,7 @@
 //! [`GpuRenderer::backward_tensors_summed_on_device`].
 
 use super::chunk::Sliced;
+use super::forward::unpack;
 use super::{GpuError, GpuRenderer, GpuScene, words};
 use crate::render::{RenderError, RenderOptions};
 use crate::scene::Gaussians;
@@ -259,19 +260,12 @@ impl GpuRenderer {
         let encoder = self.device.create_command_encoder(&Default::default());
         let bytes =
             self.scoped(|| self.read(encoder, &[(&p.scene.params, 0, (n * floats * 4) as u64)]))?;
-        let v: &[f32] = bytemuck::cast_slice(&bytes);
-        let rl = p.scene.rest_len;
-        let mut g = Gaussians::with_capacity(n, p.sh_degree);
-        for i in 0..n {
-            let q = &v[i * floats..(i + 1) * floats];
-            g.means.push([q[0], q[1], q[2]]);
-            g.log_scales.push([q[3], q[4], q[5]]);
-            g.rotations.push([q[6], q[7], q[8], q[9]]);
-            g.opacity_logits.push(q[10]);
-            g.sh_dc.push([q[11], q[12], q[13]]);
-            g.sh_rest.extend_from_slice(&q[14..14 + rl]);
-        }
-        Ok(g)
+        Ok(unpack(
+            bytemuck::cast_slice(&bytes),
+            n,
+            p.scene.rest_len,
+            p.sh_degree,
+        ))
     }
 
     /// Each Gaussian's Σ‖∂L_wm/∂θ_i‖ so far, read back.
