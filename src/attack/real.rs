@@ -125,6 +125,13 @@ pub enum RealAttack {
     /// `scale = np.sqrt(self.scale)`, `center_crop`), so "crop 40 %" is `keep = 0.4`, about 63 %
     /// of each side. (GuardSplat instead keeps 40 % of each side, i.e. `keep = 0.16` here.)
     Crop { keep: f32 },
+    /// The crop of [`Crop`](Self::Crop) (the same `keep` of the area, the same size) with its
+    /// window centred on (`x`, `y`), fractions of the width and height, and moved back inside the
+    /// image where it would cross an edge; (0.5, 0.5) is [`Crop`](Self::Crop), pixel for pixel.
+    /// The evaluation centres it on the asset in each view ([`RealAttack::at`]): the paper's
+    /// objects sit in the centre of their views, so its centred crop is a crop around the
+    /// object, which a scene whose cameras frame the asset off-centre only gets this way.
+    CropAt { keep: f32, x: f32, y: f32 },
     /// Gaussian blur with standard deviation `sigma` (> 0, pixels) and an odd `kernel` size, as
     /// torchvision's `gaussian_blur`: separable kernel sampled at integer offsets and normalised,
     /// reflect padding (mirror without repeating the edge pixel; repeated for tiny images, where
@@ -150,6 +157,27 @@ pub enum RealAttack {
 }
 
 impl RealAttack {
+    /// The same attack with every centred crop in it ([`Crop`](Self::Crop), in a chain too)
+    /// centred on (`x`, `y`) instead ([`CropAt`](Self::CropAt)); `None` when it crops nothing.
+    pub fn at(&self, x: f32, y: f32) -> Option<Self> {
+        match self {
+            Self::Crop { keep } => Some(Self::CropAt { keep: *keep, x, y }),
+            Self::Chain(steps) => {
+                let moved: Vec<Option<Self>> = steps.iter().map(|s| s.at(x, y)).collect();
+                moved.iter().any(Option::is_some).then(|| {
+                    Self::Chain(
+                        moved
+                            .into_iter()
+                            .zip(steps)
+                            .map(|(m, s)| m.unwrap_or_else(|| s.clone()))
+                            .collect(),
+                    )
+                })
+            }
+            _ => None,
+        }
+    }
+
     /// Short snake_case name of the variant (the serde tag).
     pub fn kind(&self) -> &'static str {
         match self {
@@ -157,6 +185,7 @@ impl RealAttack {
             Self::Rotate { .. } => "rotate",
             Self::Scale { .. } => "scale",
             Self::Crop { .. } => "crop",
+            Self::CropAt { .. } => "crop_at",
             Self::Blur { .. } => "blur",
             Self::Noise { .. } => "noise",
             Self::Brightness { .. } => "brightness",
@@ -177,10 +206,14 @@ impl RealAttack {
             }
             Self::Rotate { degrees } => finite(name, "degrees", degrees)?,
             Self::Scale { factor } => positive(name, "factor", factor)?,
-            Self::Crop { keep } => {
-                finite(name, "keep", keep)?;
-                if !(keep > 0.0 && keep <= 1.0) {
-                    return Err(out_of_range(name, "keep", keep, "in (0, 1]"));
+            Self::Crop { keep } => keep_fraction(name, keep)?,
+            Self::CropAt { keep, x, y } => {
+                keep_fraction(name, keep)?;
+                for (param, v) in [("x", x), ("y", y)] {
+                    finite(name, param, v)?;
+                    if !(0.0..=1.0).contains(&v) {
+                        return Err(out_of_range(name, param, v, "in [0, 1]"));
+                    }
                 }
             }
             Self::Blur { sigma, kernel } => {
@@ -240,7 +273,8 @@ impl RealAttack {
             Self::Jpeg { quality } => jpeg(img, quality)?,
             Self::Rotate { degrees } => rotate(img, degrees),
             Self::Scale { factor } => scale(img, factor)?,
-            Self::Crop { keep } => crop(img, keep)?,
+            Self::Crop { keep } => crop(img, keep, 0.5, 0.5)?,
+            Self::CropAt { keep, x, y } => crop(img, keep, x, y)?,
             Self::Blur { sigma, kernel } => blur(img, sigma, kernel),
             Self::Noise { sigma, seed } => noise(img, sigma, seed),
             Self::Brightness { factor } => brightness(img, factor),
@@ -298,6 +332,15 @@ fn finite(attack: &'static str, param: &'static str, value: f32) -> Result<(), A
             param,
             value,
         })
+    }
+}
+
+fn keep_fraction(attack: &'static str, keep: f32) -> Result<(), AttackError> {
+    finite(attack, "keep", keep)?;
+    if keep > 0.0 && keep <= 1.0 {
+        Ok(())
+    } else {
+        Err(out_of_range(attack, "keep", keep, "in (0, 1]"))
     }
 }
 
@@ -452,14 +495,19 @@ fn scale(img: &RgbImage, factor: f32) -> Result<RgbImage, AttackError> {
     Ok(imageops::resize(img, nw, nh, FilterType::Triangle))
 }
 
-fn crop(img: &RgbImage, keep: f32) -> Result<RgbImage, AttackError> {
+/// The crop of `keep` of the area centred on (`x`, `y`) (fractions of the sides), inside the
+/// image. At the centre this is torchvision's `center_crop`: top = int(round((h − ch) / 2)),
+/// Python rounding half to even.
+fn crop(img: &RgbImage, keep: f32, x: f32, y: f32) -> Result<RgbImage, AttackError> {
     let (w, h) = img.dimensions();
     let side = f64::from(keep).sqrt();
     let (cw, ch) = check_size("crop", img, scaled_len(w, side), scaled_len(h, side))?;
-    // torchvision's center_crop: top = int(round((h - ch) / 2)), Python rounding half to even.
-    let left = (f64::from(w - cw) / 2.0).round_ties_even() as u32;
-    let top = (f64::from(h - ch) / 2.0).round_ties_even() as u32;
-    Ok(imageops::crop_imm(img, left, top, cw, ch).to_image())
+    let start = |len: u32, cut: u32, at: f32| {
+        (f64::from(len) * f64::from(at) - f64::from(cut) / 2.0)
+            .round_ties_even()
+            .clamp(0.0, f64::from(len - cut)) as u32
+    };
+    Ok(imageops::crop_imm(img, start(w, cw, x), start(h, ch, y), cw, ch).to_image())
 }
 
 /// Index into 0..n after reflect padding (…, 2, 1, [0, 1, …, n−1], n−2, …), repeated as needed.
@@ -783,6 +831,53 @@ mod tests {
         assert_eq!(q.dimensions(), (50, 40));
         assert_eq!(q.get_pixel(0, 0), t.get_pixel(25, 20));
         assert_eq!(run(RealAttack::Crop { keep: 1.0 }, &t), t);
+    }
+
+    #[test]
+    fn a_crop_centred_elsewhere_keeps_its_size_and_stays_inside_the_image() {
+        let t = textured(100, 80);
+        let at = |x, y| run(RealAttack::CropAt { keep: 0.4, x, y }, &t);
+        // At the centre it is the protocol's crop, pixel for pixel.
+        assert_eq!(at(0.5, 0.5), run(RealAttack::Crop { keep: 0.4 }, &t));
+        // Centred on (30, 48): left = round(30 − 31.5) clamped to 0, top = 48 − 25 = 23.
+        let c = at(0.3, 0.6);
+        assert_eq!(c.dimensions(), (63, 50));
+        for (x, y) in [(0, 0), (62, 0), (0, 49), (62, 49)] {
+            assert_eq!(c.get_pixel(x, y), t.get_pixel(x, y + 23));
+        }
+        // Towards the bottom-right corner the window stops at the edges.
+        let c = at(1.0, 1.0);
+        assert_eq!(c.get_pixel(62, 49), t.get_pixel(99, 79));
+        assert_eq!(c.get_pixel(0, 0), t.get_pixel(37, 30));
+        for (x, y) in [(-0.1, 0.5), (0.5, 1.5), (f32::NAN, 0.5)] {
+            assert!(matches!(
+                RealAttack::CropAt { keep: 0.4, x, y }.validate(),
+                Err(AttackError::OutOfRange { .. } | AttackError::NotFinite { .. })
+            ));
+        }
+    }
+
+    #[test]
+    fn moving_the_crop_changes_only_the_crops_of_an_attack() {
+        let combined = paper_protocol(3)
+            .into_iter()
+            .find(|(n, _)| *n == "combined")
+            .unwrap()
+            .1;
+        let RealAttack::Chain(steps) = combined.at(0.2, 0.9).unwrap() else {
+            panic!("a chain stays a chain");
+        };
+        assert!(matches!(steps[0], RealAttack::Noise { seed: 3, .. }));
+        assert_eq!(
+            steps[1],
+            RealAttack::CropAt {
+                keep: 0.4,
+                x: 0.2,
+                y: 0.9
+            }
+        );
+        assert_eq!(steps[2], RealAttack::Jpeg { quality: 50 });
+        assert_eq!(RealAttack::Jpeg { quality: 50 }.at(0.2, 0.9), None);
     }
 
     #[test]

@@ -95,18 +95,43 @@ pub struct ViewEval {
     /// shows no asset (or in reports from before it).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub asset_in_crop: Option<f64>,
+    /// The same share for the crop centred on the asset (rows `*_on_asset`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub asset_in_crop_on_asset: Option<f64>,
+}
+
+/// Centre of the asset's pixels in `img` (as [`coverage`] counts them), as fractions of the
+/// width and height (pixel centres); `None` when `img` shows none.
+pub fn asset_centre(img: &RgbImage, background: [f32; 3]) -> Option<(f32, f32)> {
+    let (mut sx, mut sy, mut n) = (0.0f64, 0.0f64, 0u64);
+    for (x, y, p) in img.enumerate_pixels() {
+        if on_asset(p, background) {
+            sx += f64::from(x) + 0.5;
+            sy += f64::from(y) + 0.5;
+            n += 1;
+        }
+    }
+    (n > 0).then(|| {
+        let n = n as f64;
+        (
+            (sx / n / f64::from(img.width())) as f32,
+            (sy / n / f64::from(img.height())) as f32,
+        )
+    })
 }
 
 /// Share of `img`'s pixels farther than 2 levels from `background` (linear [0, 1]) in any
 /// channel.
 pub fn coverage(img: &RgbImage, background: [f32; 3]) -> f64 {
-    let bg = background.map(|c| (c.clamp(0.0, 1.0) * 255.0).round() as i32);
     let n = (img.width() as usize * img.height() as usize).max(1);
-    let on = img
-        .pixels()
-        .filter(|p| (0..3).any(|c| (i32::from(p.0[c]) - bg[c]).abs() > 2))
-        .count();
+    let on = img.pixels().filter(|p| on_asset(p, background)).count();
     on as f64 / n as f64
+}
+
+/// Whether a pixel shows the asset: farther than 2 levels from `background` in a channel.
+fn on_asset(p: &image::Rgb<u8>, background: [f32; 3]) -> bool {
+    let bg = background.map(|c| (c.clamp(0.0, 1.0) * 255.0).round() as i32);
+    (0..3).any(|c| (i32::from(p.0[c]) - bg[c]).abs() > 2)
 }
 
 /// Share of the asset's pixels in `img` (as [`coverage`] counts them) that are still in
@@ -288,23 +313,37 @@ pub fn evaluate_scene(
         .iter()
         .find(|(_, a)| matches!(a, RealAttack::Crop { .. }))
         .map(|(_, a)| a.clone());
+    // Where each view's crops centre on the asset (rows `*_on_asset`; the image's centre where
+    // a view shows none of it).
+    let centres: Vec<(f32, f32)> = orig
+        .iter()
+        .map(|a| asset_centre(a, opts.background).unwrap_or((0.5, 0.5)))
+        .collect();
+    let kept = |a: &RgbImage, attack: Option<RealAttack>| match attack {
+        Some(attack) => {
+            asset_kept(a, &attack, opts.background).map_err(|source| EvalError::Attack {
+                name: "crop".into(),
+                source,
+            })
+        }
+        None => Ok(None),
+    };
     let mut per_view = Vec::with_capacity(cams.len());
-    for ((c, (a, b)), z) in cams.iter().zip(orig.iter().zip(&mark)).zip(&clean) {
-        let asset_in_crop = match &crop {
-            Some(attack) => {
-                asset_kept(a, attack, opts.background).map_err(|source| EvalError::Attack {
-                    name: "crop".into(),
-                    source,
-                })?
-            }
-            None => None,
-        };
+    for (((c, (a, b)), z), &(x, y)) in cams
+        .iter()
+        .zip(orig.iter().zip(&mark))
+        .zip(&clean)
+        .zip(&centres)
+    {
+        let asset_in_crop = kept(a, crop.clone())?;
+        let asset_in_crop_on_asset = kept(a, crop.as_ref().and_then(|k| k.at(x, y)))?;
         per_view.push(ViewEval {
             camera: c.name.clone(),
             coverage: coverage(a, opts.background),
             psnr: psnr_u8(a, b),
             bit_accuracy: bit_accuracy(z, message),
             asset_in_crop,
+            asset_in_crop_on_asset,
         });
     }
     let mut rows = vec![
@@ -329,6 +368,28 @@ pub fn evaluate_scene(
             })
             .collect::<Result<Vec<_>, _>>()?;
         rows.push(row(name, "image", &attacked, model, message, fpr, &device)?);
+    }
+    // The protocol's crops again, each view's centred on its asset.
+    for (name, a) in &image_attacks {
+        let Some(attacked) = centres
+            .iter()
+            .zip(&mark)
+            .map(|(&(x, y), im)| {
+                a.at(x, y).map(|moved| {
+                    moved.apply(im).map_err(|source| EvalError::Attack {
+                        name: format!("{name}_on_asset"),
+                        source,
+                    })
+                })
+            })
+            .collect::<Option<Result<Vec<_>, _>>>()
+        else {
+            continue;
+        };
+        let name = format!("{name}_on_asset");
+        rows.push(row(
+            &name, "image", &attacked?, model, message, fpr, &device,
+        )?);
     }
     let noise_position_scale = view_position_scale(marked, cams);
     let mut model_attacks = ModelAttack::paper_protocol(seed);
@@ -392,6 +453,27 @@ mod tests {
         let full = RgbImage::from_pixel(100, 80, image::Rgb([9, 9, 9]));
         let k = asset_kept(&full, &crop, black).unwrap().unwrap();
         assert!((k - 0.4).abs() < 0.02, "{k}");
+    }
+
+    #[test]
+    fn the_crop_on_the_asset_keeps_an_asset_in_a_corner() {
+        let black = [0.0; 3];
+        let mut img = RgbImage::new(100, 80);
+        assert_eq!(asset_centre(&img, black), None);
+        for x in 0..15 {
+            for y in 0..12 {
+                img.put_pixel(x, y, image::Rgb([200, 120, 40]));
+            }
+        }
+        let (x, y) = asset_centre(&img, black).unwrap();
+        assert!(
+            (x - 0.075).abs() < 1e-6 && (y - 0.075).abs() < 1e-6,
+            "{x} {y}"
+        );
+        let crop = RealAttack::Crop { keep: 0.4 };
+        assert_eq!(asset_kept(&img, &crop, black).unwrap(), Some(0.0));
+        let moved = crop.at(x, y).unwrap();
+        assert_eq!(asset_kept(&img, &moved, black).unwrap(), Some(1.0));
     }
 
     #[test]
