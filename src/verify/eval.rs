@@ -104,8 +104,9 @@ pub struct ViewEval {
 /// width and height (pixel centres); `None` when `img` shows none.
 pub fn asset_centre(img: &RgbImage, background: [f32; 3]) -> Option<(f32, f32)> {
     let (mut sx, mut sy, mut n) = (0.0f64, 0.0f64, 0u64);
+    let bg = background_levels(background);
     for (x, y, p) in img.enumerate_pixels() {
-        if on_asset(p, background) {
+        if on_asset(p, bg) {
             sx += f64::from(x) + 0.5;
             sy += f64::from(y) + 0.5;
             n += 1;
@@ -124,14 +125,20 @@ pub fn asset_centre(img: &RgbImage, background: [f32; 3]) -> Option<(f32, f32)> 
 /// channel.
 pub fn coverage(img: &RgbImage, background: [f32; 3]) -> f64 {
     let n = (img.width() as usize * img.height() as usize).max(1);
-    let on = img.pixels().filter(|p| on_asset(p, background)).count();
+    let bg = background_levels(background);
+    let on = img.pixels().filter(|p| on_asset(p, bg)).count();
     on as f64 / n as f64
 }
 
-/// Whether a pixel shows the asset: farther than 2 levels from `background` in a channel.
-fn on_asset(p: &image::Rgb<u8>, background: [f32; 3]) -> bool {
-    let bg = background.map(|c| (c.clamp(0.0, 1.0) * 255.0).round() as i32);
+/// Whether a pixel shows the asset: farther than 2 levels from the background's 8-bit
+/// levels ([`background_levels`]) in a channel.
+fn on_asset(p: &image::Rgb<u8>, bg: [i32; 3]) -> bool {
     (0..3).any(|c| (i32::from(p.0[c]) - bg[c]).abs() > 2)
+}
+
+/// The 8-bit levels of a linear [0, 1] background colour.
+fn background_levels(background: [f32; 3]) -> [i32; 3] {
+    background.map(|c| (c.clamp(0.0, 1.0) * 255.0).round() as i32)
 }
 
 /// Share of the asset's pixels in `img` (as [`coverage`] counts them) that are still in
