@@ -58,6 +58,19 @@ impl<T: Copy> Gaussians<T> {
         &self.sh_rest[i * r..(i + 1) * r]
     }
 
+    /// Every parameter in one vector (means, log-scales, rotations, opacity logits, SH DC, the
+    /// higher SH coefficients): what tests compare two scenes or two gradients by.
+    #[cfg(test)]
+    pub fn flat(&self) -> Vec<T> {
+        let mut v: Vec<T> = self.means.iter().flatten().copied().collect();
+        v.extend(self.log_scales.iter().flatten());
+        v.extend(self.rotations.iter().flatten());
+        v.extend(&self.opacity_logits);
+        v.extend(self.sh_dc.iter().flatten());
+        v.extend(&self.sh_rest);
+        v
+    }
+
     /// The same scene with every value converted to another float type.
     pub fn cast<U: Copy>(&self, f: impl Fn(T) -> U + Copy) -> Gaussians<U> {
         Gaussians {

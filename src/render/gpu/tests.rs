@@ -762,16 +762,7 @@ fn a_steps_gradients_summed_on_the_device_are_the_sum_of_each_views() {
         let summed = renderer.backward_tensors_summed(&g, &refs).unwrap();
         // The same additions in the same order; a compiler may fuse one into a multiply-add,
         // so allow rounding of the largest value.
-        let flat = |x: &Gaussians| -> Vec<f32> {
-            let mut v: Vec<f32> = x.means.iter().flatten().copied().collect();
-            v.extend(x.log_scales.iter().flatten());
-            v.extend(x.rotations.iter().flatten());
-            v.extend(&x.opacity_logits);
-            v.extend(x.sh_dc.iter().flatten());
-            v.extend(&x.sh_rest);
-            v
-        };
-        let (a, b) = (flat(&sum), flat(&summed));
+        let (a, b) = (sum.flat(), summed.flat());
         let scale = a.iter().fold(0.0f32, |m, v| m.max(v.abs()));
         assert!(scale > 0.0);
         for (i, (x, y)) in a.iter().zip(&b).enumerate() {
@@ -782,7 +773,7 @@ fn a_steps_gradients_summed_on_the_device_are_the_sum_of_each_views() {
         }
         // No passes: zero; a render of another shape: the typed error.
         let none = renderer.backward_tensors_summed(&g, &[]).unwrap();
-        assert!(flat(&none).iter().all(|&v| v == 0.0));
+        assert!(none.flat().iter().all(|&v| v == 0.0));
         let other = scene(45, 10, 2, 1.0, (-4.0, -2.5));
         assert!(matches!(
             renderer.backward_tensors_summed(&other, &refs),

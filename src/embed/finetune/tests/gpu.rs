@@ -252,17 +252,8 @@ fn the_device_optimiser_steps_as_the_host_one_does() {
         g.sh_rest.iter_mut().for_each(&mut r);
         g
     };
-    let flat = |x: &Gaussians| -> Vec<f32> {
-        let mut v: Vec<f32> = x.means.iter().flatten().copied().collect();
-        v.extend(x.log_scales.iter().flatten());
-        v.extend(x.rotations.iter().flatten());
-        v.extend(&x.opacity_logits);
-        v.extend(x.sh_dc.iter().flatten());
-        v.extend(&x.sh_rest);
-        v
-    };
     let close = |what: &str, a: &Gaussians, b: &Gaussians| {
-        for (i, (x, y)) in flat(a).iter().zip(flat(b)).enumerate() {
+        for (i, (x, y)) in a.flat().iter().zip(b.flat()).enumerate() {
             assert!(
                 (x - y).abs() <= 1e-6 * x.abs().max(1.0),
                 "{what}, value {i}: host {x}, device {y}"
@@ -310,7 +301,7 @@ fn the_device_optimiser_steps_as_the_host_one_does() {
                 .unwrap();
             close("Adam", &host, &gpu.read_params(&dev).unwrap());
         }
-        assert_ne!(flat(&host), flat(&base), "nothing moved");
+        assert_ne!(host.flat(), base.flat(), "nothing moved");
         for (i, (a, b)) in norms.iter().zip(gpu.read_norms(&dev).unwrap()).enumerate() {
             assert!(
                 (*a as f32 - b).abs() <= 1e-5 * b.max(1e-3),
@@ -346,6 +337,6 @@ fn the_device_optimiser_steps_as_the_host_one_does() {
             gpu.adam_step(&mut dev, &other, &other, coupled, 1.0)
                 .is_err()
         );
-        assert_eq!(flat(&gpu.read_params(&dev).unwrap()), flat(&shrunk));
+        assert_eq!(gpu.read_params(&dev).unwrap().flat(), shrunk.flat());
     }
 }
