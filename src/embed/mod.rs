@@ -10,6 +10,7 @@
 //! | [`stats`] | §3.2 "quantile-based min–max normalisation" | `Norm(·)`, quantiles |
 //! | [`sbag`] | §3.3 eqs. `rk_clip`, `ui_sym`, `eta_overlap`, `self_budget_B`, `feasible_set_quantile`, `seed_topB`, `evidence_vec`, `parent_set`, `wstar` | ranking, one-shot visibility and crowding, budget, feasible set, top-B, proximity extension, render-equivalent split into carrier + compensators |
 //! | [`mask`] | §3.4 eqs. `masks`, `gate` | channel-wise group masks, gradient gating per route |
+//! | [`path`] | project-specific: the views the finetuning renders | cameras interpolated between consecutive training cameras along their capture path |
 //! | [`attribution`] | §1/§5 per-Gaussian attribution | one record per output Gaussian, JSON Lines |
 //!
 //! [`plan`] runs them in order: prune → experts → SBAG → masks → attribution. The finetuning
@@ -27,6 +28,7 @@ pub mod explain;
 pub mod finetune;
 pub mod knn;
 pub mod mask;
+pub mod path;
 pub mod pipeline;
 pub mod prune;
 pub mod sbag;

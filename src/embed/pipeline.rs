@@ -13,6 +13,7 @@ use super::finetune::{
     FinetuneConfig, FinetuneError, StepLog, StretchCheck, View, ViewsCheck, finetune, target_views,
 };
 use super::mask::MaskConfig;
+use super::path::{PathConfig, path_cameras};
 use super::sbag::Budget;
 use super::{EmbedConfig, plan_over};
 use crate::decoder::WatermarkModel;
@@ -57,6 +58,13 @@ pub struct EmbedOptions {
     /// break udon, whose cameras sit close to the scene (turned copies see it from inside or
     /// from nowhere, and the fidelity bound then collapses the writes): 0 by default.
     pub extra_views: usize,
+    /// Cameras interpolated along the training cameras' path ([`crate::embed::path`]): in each
+    /// gap between consecutive training cameras (in the order given) that turns at most
+    /// `path.max_turn_deg`, `path.per_gap` cameras the finetuning renders besides them. Measured
+    /// (docs/RESULTS.md, "Views along the capture path"): udon's held-out cameras, which lie
+    /// on its capture path between training cameras, read PLACEHOLDER. An orbit's 30° steps
+    /// turn too far, so the service's and the CLI's orbits get none.
+    pub path: PathConfig,
     /// Training views SBAG's visibility, the calibration (matched head, decoder gain) and the
     /// reference logits read: at most this many, spread over the training cameras
     /// ([`spread_views`]); 0 reads every one. Those phases' cost grows with the views while a
@@ -79,6 +87,7 @@ impl Default for EmbedOptions {
             view_scales: vec![1.0],
             projection: ProjectionConfig::default(),
             extra_views: 0,
+            path: PathConfig::default(),
             analysis_views: 24,
         }
     }
@@ -181,6 +190,10 @@ impl EmbedOptions {
                 ..ProjectionConfig::default()
             },
             extra_views: 0,
+            path: PathConfig {
+                per_gap: 0,
+                ..PathConfig::default()
+            },
             // The paper reads every training view.
             analysis_views: 0,
             ..Self::default()
@@ -254,6 +267,8 @@ pub struct EmbedReport {
     pub message_hex: String,
     pub bits: usize,
     pub views: usize,
+    /// Cameras interpolated along the training cameras' path ([`EmbedOptions::path`]).
+    pub path_views: usize,
     /// Training views SBAG's visibility, the calibration and the reference read
     /// ([`EmbedOptions::analysis_views`]).
     pub analysis_views: usize,
@@ -317,6 +332,7 @@ pub fn embed(
         return Err(EmbedError::NoViews);
     }
     opts.finetune.validate().map_err(EmbedError::Invalid)?;
+    opts.path.validate().map_err(EmbedError::Invalid)?;
     // The most steps finetuning may take (it may stop early when `extra_steps` > 0).
     let total = opts.finetune.steps + opts.finetune.extra_steps;
     let report_phase = |p: &mut dyn FnMut(Progress) -> ControlFlow<()>, phase| match p(Progress {
@@ -332,6 +348,9 @@ pub fn embed(
     let ro = opts.render_options();
     let t = Instant::now();
     let mut finetune_cameras = cameras.to_vec();
+    let path_views = path_cameras(cameras, &opts.path);
+    let path_count = path_views.len();
+    finetune_cameras.extend(path_views);
     if opts.extra_views > 0 {
         if opts.extra_views > 1000 {
             return Err(EmbedError::Invalid(format!(
@@ -474,6 +493,7 @@ pub fn embed(
         message_hex: to_hex(message),
         bits: message.len(),
         views: cameras.len(),
+        path_views: path_count,
         analysis_views: pick.len(),
         input_gaussians: g.len(),
         pruned: p.prune.as_ref().map_or(0, |r| r.removed()),

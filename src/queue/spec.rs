@@ -112,6 +112,10 @@ impl JobOptions {
         if embed.extra_views > 1000 {
             return Err("options.embed.extra_views: at most 1000".into());
         }
+        embed
+            .path
+            .validate()
+            .map_err(|e| format!("options.embed.{e}"))?;
         if embed.finetune.check_every == 0 {
             return Err("options.embed.finetune.check_every must be at least 1".into());
         }
@@ -251,6 +255,11 @@ mod tests {
             (
                 json!({"embed": {"finetune": {"wm_geometry": true}}}),
                 "wm_geometry",
+            ),
+            (json!({"embed": {"path": {"per_gap": 100}}}), "path.per_gap"),
+            (
+                json!({"embed": {"path": {"max_turn_deg": 0.0}}}),
+                "path.max_turn_deg",
             ),
         ] {
             let o: JobOptions = serde_json::from_value(v).unwrap();

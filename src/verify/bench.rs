@@ -218,6 +218,9 @@ pub struct QualityRun {
     pub bits: usize,
     pub gaussians: usize,
     pub train_views: usize,
+    /// Cameras the finetuning interpolated along the training cameras' path
+    /// ([`crate::embed::pipeline::EmbedOptions::path`]).
+    pub path_views: usize,
     pub eval_views: usize,
     pub carriers: usize,
     pub compensators: usize,
@@ -539,6 +542,7 @@ pub fn run(
                 bits,
                 gaussians: g.len(),
                 train_views: train.len(),
+                path_views: out.report.path_views,
                 eval_views: unseen.len(),
                 carriers: out.report.carriers,
                 compensators: out.report.compensators,
@@ -602,8 +606,13 @@ pub fn markdown(report: &QualityReport) -> String {
                 })
         };
         let row = |name: &str| r.eval.rows.iter().find(|x| x.name == name);
+        let path = if r.path_views > 0 {
+            format!(" + {} path", r.path_views)
+        } else {
+            String::new()
+        };
         s += &format!(
-            "| {} | {} | {} / {} | {:.2} | {:.3} |",
+            "| {} | {} | {}{path} / {} | {:.2} | {:.3} |",
             r.scene, r.bits, r.train_views, r.eval_views, r.eval.psnr, r.eval.ssim
         );
         for c in cols {
