@@ -62,8 +62,10 @@ pub struct EmbedOptions {
     /// gap between consecutive training cameras (in the order given) that turns at most
     /// `path.max_turn_deg`, `path.per_gap` cameras the finetuning renders besides them. Measured
     /// (docs/RESULTS.md, "Views along the capture path"): udon's held-out cameras, which lie
-    /// on its capture path between training cameras, read PLACEHOLDER. An orbit's 30° steps
-    /// turn too far, so the service's and the CLI's orbits get none.
+    /// on its capture path between training cameras, read 98.4 % of a 32-bit payload at its
+    /// cameras' size (95.3 without), rotation 95.3 (93.8), scaling 96.9 (93.8). The orbits of
+    /// the service and the CLI change elevation by 25–80° from one view to the next, so they
+    /// get none. [`EmbedOptions::paper`]: none.
     pub path: PathConfig,
     /// Training views SBAG's visibility, the calibration (matched head, decoder gain) and the
     /// reference logits read: at most this many, spread over the training cameras
