@@ -12,7 +12,9 @@
 //! a turn of more than [`PathConfig::max_turn_deg`] (the orbits of the service and the CLI
 //! change elevation by 25–80° from one view to the next: a camera in between may look at
 //! nothing, as the turned copies of `extra_views` did on udon), or a step longer than
-//! [`PathConfig::max_step`] × the median step.
+//! [`PathConfig::max_step`] × the median step. At most [`PathConfig::max_total`] cameras are
+//! added in all, the widest gaps first (each view's target image is held in memory for the whole
+//! finetuning, and a dense capture — a video's frames — needs no filling in).
 
 use glam::{Mat3, Quat};
 use serde::{Deserialize, Serialize};
@@ -30,6 +32,9 @@ pub struct PathConfig {
     /// A gap longer than this many times the median distance between consecutive cameras is
     /// skipped.
     pub max_step: f32,
+    /// Most path cameras in all: when the gaps would get more, the widest turns get theirs
+    /// first (whole gaps, `per_gap` each; ties in path order).
+    pub max_total: usize,
 }
 
 impl Default for PathConfig {
@@ -38,6 +43,7 @@ impl Default for PathConfig {
             per_gap: 2,
             max_turn_deg: 20.0,
             max_step: 2.5,
+            max_total: 64,
         }
     }
 }
@@ -45,6 +51,8 @@ impl Default for PathConfig {
 impl PathConfig {
     /// Most cameras a gap may get.
     pub const MAX_PER_GAP: usize = 16;
+    /// Most path cameras [`Self::max_total`] may allow.
+    pub const MAX_TOTAL: usize = 1000;
 
     /// Checks the ranges: `per_gap` ≤ [`Self::MAX_PER_GAP`], the limits finite and positive.
     pub fn validate(&self) -> Result<(), String> {
@@ -60,6 +68,13 @@ impl PathConfig {
             return Err(format!(
                 "path.max_turn_deg must be in (0, 180], got {}",
                 self.max_turn_deg
+            ));
+        }
+        if self.max_total > Self::MAX_TOTAL {
+            return Err(format!(
+                "path.max_total is {}; at most {}",
+                self.max_total,
+                Self::MAX_TOTAL
             ));
         }
         if !(self.max_step.is_finite() && self.max_step > 0.0) {
@@ -86,19 +101,32 @@ pub fn path_cameras(cameras: &[Camera], cfg: &PathConfig) -> Vec<Camera> {
     let mut sorted = steps.clone();
     sorted.sort_by(f32::total_cmp);
     let median = sorted[sorted.len() / 2];
+    // The gaps of the path (index, turn in degrees).
+    let mut gaps: Vec<(usize, f32)> = cameras
+        .windows(2)
+        .zip(&steps)
+        .enumerate()
+        .filter_map(|(i, (w, &step))| {
+            let (a, b) = (&w[0], &w[1]);
+            let turn = orientation(a).angle_between(orientation(b)).to_degrees();
+            (a.width == b.width
+                && a.height == b.height
+                && turn <= cfg.max_turn_deg
+                && step <= cfg.max_step * median)
+                .then_some((i, turn))
+        })
+        .collect();
+    let keep = cfg.max_total / cfg.per_gap;
+    if gaps.len() > keep {
+        // The widest turns first; the sort is stable, so ties keep the path's order.
+        gaps.sort_by(|x, y| y.1.total_cmp(&x.1));
+        gaps.truncate(keep);
+        gaps.sort_by_key(|g| g.0);
+    }
     let mut out = Vec::new();
-    for (w, &step) in cameras.windows(2).zip(&steps) {
-        let (a, b) = (&w[0], &w[1]);
-        let qa = orientation(a);
-        let qb = orientation(b);
-        let turn = qa.angle_between(qb).to_degrees();
-        if a.width != b.width
-            || a.height != b.height
-            || !(turn <= cfg.max_turn_deg)
-            || !(step <= cfg.max_step * median)
-        {
-            continue;
-        }
+    for (i, _) in gaps {
+        let (a, b) = (&cameras[i], &cameras[i + 1]);
+        let (qa, qb) = (orientation(a), orientation(b));
         let (ca, cb) = (a.center(), b.center());
         let lerp = |x: f32, y: f32, t: f32| x + (y - x) * t;
         for k in 1..=cfg.per_gap {
@@ -252,6 +280,34 @@ mod tests {
     }
 
     #[test]
+    fn a_dense_path_gets_at_most_max_total_cameras_in_its_widest_gaps() {
+        // 40 cameras 1° apart but for three gaps of 2°.
+        let mut deg = vec![0.0f32];
+        for k in 1..40 {
+            let step = if [10, 20, 30].contains(&k) { 2.0 } else { 1.0 };
+            deg.push(deg[k - 1] + step);
+        }
+        let cams = arc(&deg);
+        // 39 gaps would get 78 cameras; the default cap keeps 64 (32 gaps).
+        assert_eq!(path_cameras(&cams, &PathConfig::default()).len(), 64);
+        // A cap of 6 fills the three wide gaps, in the path's order.
+        let cfg = PathConfig {
+            max_total: 6,
+            ..PathConfig::default()
+        };
+        let names: Vec<String> = path_cameras(&cams, &cfg)
+            .into_iter()
+            .map(|c| c.name)
+            .collect();
+        let gap = |k: usize| {
+            let (x, y) = (deg[k - 1], deg[k]);
+            [format!("c{x}~c{y}#1"), format!("c{x}~c{y}#2")]
+        };
+        let want: Vec<String> = [10, 20, 30].into_iter().flat_map(gap).collect();
+        assert_eq!(names, want);
+    }
+
+    #[test]
     fn off_or_short_paths_add_nothing_and_bad_settings_are_refused() {
         let off = PathConfig {
             per_gap: 0,
@@ -275,6 +331,10 @@ mod tests {
             },
             PathConfig {
                 max_step: -1.0,
+                ..PathConfig::default()
+            },
+            PathConfig {
+                max_total: 1001,
                 ..PathConfig::default()
             },
         ] {
