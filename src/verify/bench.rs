@@ -585,12 +585,12 @@ pub fn markdown(report: &QualityReport) -> String {
         "noise_0.1",
     ];
     let mut s = String::new();
-    s += "| scene | bits | views train / unseen | PSNR | SSIM |";
+    s += "| scene | bits | views train / unseen | PSNR | PSNR on the asset | SSIM |";
     for c in cols {
         s += &format!(" {c} |");
     }
     s += " clean detected per view | clean detected (avg logits) | unmarked detected | embed s (steps) | targets |\n";
-    s += "|---|---|---|---|---|";
+    s += "|---|---|---|---|---|---|";
     for _ in cols {
         s += "---|";
     }
@@ -611,8 +611,12 @@ pub fn markdown(report: &QualityReport) -> String {
         } else {
             String::new()
         };
+        let on_asset = r
+            .eval
+            .psnr_on_asset
+            .map_or("–".to_string(), |p| format!("{p:.2}"));
         s += &format!(
-            "| {} | {} | {}{path} / {} | {:.2} | {:.3} |",
+            "| {} | {} | {}{path} / {} | {:.2} | {on_asset} | {:.3} |",
             r.scene, r.bits, r.train_views, r.eval_views, r.eval.psnr, r.eval.ssim
         );
         for c in cols {
@@ -650,7 +654,7 @@ pub fn markdown(report: &QualityReport) -> String {
         );
     }
     if report.runs.iter().any(|r| !r.eval.per_view.is_empty()) {
-        s += "\nEach unseen view, clean (share of its pixels showing the asset · bits right, %; the share of the asset the 40 % crop keeps, centred and centred on the asset):\n\n";
+        s += "\nEach unseen view, clean (share of its pixels showing the asset · bits right, %; PSNR of the frame and of the asset's pixels; the share of the asset the 40 % crop keeps, centred and centred on the asset):\n\n";
         for r in report.runs.iter().filter(|r| !r.eval.per_view.is_empty()) {
             let views: Vec<String> = r
                 .eval
@@ -666,8 +670,12 @@ pub fn markdown(report: &QualityReport) -> String {
                         (Some(k), None) => format!(" (crop keeps {:.0} % of it)", 100.0 * k),
                         _ => String::new(),
                     };
+                    let psnr = match v.psnr_on_asset {
+                        Some(p) => format!(" ({:.1} dB, on the asset {p:.1} dB)", v.psnr),
+                        None => format!(" ({:.1} dB)", v.psnr),
+                    };
                     format!(
-                        "{:.0} % · {:.1}{crop}",
+                        "{:.0} % · {:.1}{psnr}{crop}",
                         100.0 * v.coverage,
                         100.0 * v.bit_accuracy
                     )
@@ -684,7 +692,13 @@ pub fn markdown(report: &QualityReport) -> String {
                 .eval
                 .rows
                 .iter()
-                .filter_map(|x| Some(format!("{} {:.1} dB", x.name, x.psnr_vs_original?)))
+                .filter_map(|x| {
+                    let frame = x.psnr_vs_original?;
+                    Some(match x.psnr_on_asset_vs_original {
+                        Some(a) => format!("{} {frame:.1} dB (on the asset {a:.1} dB)", x.name),
+                        None => format!("{} {frame:.1} dB", x.name),
+                    })
+                })
                 .collect();
             let scale = r.eval.noise_position_scale.map_or(String::new(), |k| {
                 format!(" (scaled: the means' noise × {k:.3})")
@@ -815,6 +829,7 @@ mod tests {
             detected,
             detection_rate_per_view: 0.0,
             psnr_vs_original: None,
+            psnr_on_asset_vs_original: None,
         }
     }
 
@@ -828,6 +843,7 @@ mod tests {
             views: 4,
             psnr: 36.5,
             ssim: 0.985,
+            psnr_on_asset: None,
             fpr: 1e-6,
             rows,
             per_view: vec![],

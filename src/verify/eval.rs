@@ -61,6 +61,10 @@ pub struct Row {
     /// fail on it).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub psnr_vs_original: Option<f64>,
+    /// Model attacks: the same PSNR over the asset's pixels only ([`psnr_on_asset`]; a frame
+    /// mostly background hides what the attack does to the asset itself).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub psnr_on_asset_vs_original: Option<f64>,
 }
 
 /// The evaluation of one watermarked scene.
@@ -71,6 +75,12 @@ pub struct SceneEval {
     pub psnr: f64,
     /// Mean SSIM of the same.
     pub ssim: f64,
+    /// Mean over the views that show the asset of the PSNR over the asset's pixels only
+    /// ([`psnr_on_asset`]): `psnr` counts the background too, which the finetuning leaves
+    /// untouched, so a small asset in a large frame reads several dB above what its own pixels
+    /// went through (absent in reports from before it, or when no view shows the asset).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub psnr_on_asset: Option<f64>,
     pub fpr: f64,
     pub rows: Vec<Row>,
     /// Each view on its own, clean: how much of it shows the asset, its fidelity, its bits.
@@ -89,6 +99,10 @@ pub struct ViewEval {
     /// (the asset's footprint: a view that barely shows the asset cannot carry its bits).
     pub coverage: f64,
     pub psnr: f64,
+    /// PSNR over the asset's pixels only ([`psnr_on_asset`]); `None` when the view shows none
+    /// of it (or in reports from before it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub psnr_on_asset: Option<f64>,
     pub bit_accuracy: f64,
     /// Share of the asset's pixels (as [`coverage`] counts them) that the protocol's crop keeps
     /// (a crop that keeps none of the asset leaves nothing to decode); `None` when the view
@@ -192,6 +206,41 @@ fn psnr_u8(a: &RgbImage, b: &RgbImage) -> f64 {
     }
 }
 
+/// PSNR (dB) of `b` against `a` over the pixels where either shows the asset (farther than 2
+/// levels from `background`, as [`coverage`] counts them); `None` when neither shows any.
+/// Over a whole frame the untouched background dilutes the error: a change confined to the
+/// asset reads 10·log₁₀(1 / coverage) dB higher there than on the asset's own pixels.
+pub fn psnr_on_asset(a: &RgbImage, b: &RgbImage, background: [f32; 3]) -> Option<f64> {
+    let bg = background_levels(background);
+    let (mut se, mut n) = (0.0f64, 0u64);
+    for (p, q) in a.pixels().zip(b.pixels()) {
+        if on_asset(p, bg) || on_asset(q, bg) {
+            se += (0..3)
+                .map(|c| (f64::from(p.0[c]) - f64::from(q.0[c])).powi(2))
+                .sum::<f64>();
+            n += 3;
+        }
+    }
+    (n > 0).then(|| {
+        let mse = se / n as f64;
+        if mse > 0.0 {
+            10.0 * (255.0f64 * 255.0 / mse).log10()
+        } else {
+            f64::INFINITY
+        }
+    })
+}
+
+/// Mean of the views' [`psnr_on_asset`] over the views that show the asset.
+fn mean_psnr_on_asset(a: &[RgbImage], b: &[RgbImage], background: [f32; 3]) -> Option<f64> {
+    let v: Vec<f64> = a
+        .iter()
+        .zip(b)
+        .filter_map(|(x, y)| psnr_on_asset(x, y, background))
+        .collect();
+    (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+}
+
 /// Decodes each image alone; returns the row for `message`.
 fn row(
     name: &str,
@@ -255,6 +304,7 @@ fn row_of_logits(
         detected: d.detected,
         detection_rate_per_view: alone as f64 / logits.len() as f64,
         psnr_vs_original: None,
+        psnr_on_asset_vs_original: None,
     })
 }
 
@@ -348,6 +398,7 @@ pub fn evaluate_scene(
             camera: c.name.clone(),
             coverage: coverage(a, opts.background),
             psnr: psnr_u8(a, b),
+            psnr_on_asset: psnr_on_asset(a, b, opts.background),
             bit_accuracy: bit_accuracy(z, message),
             asset_in_crop,
             asset_in_crop_on_asset,
@@ -418,12 +469,14 @@ pub fn evaluate_scene(
         let imgs = render_views(&g, cams, opts)?;
         let mut r = row(&name, "model", &imgs, model, message, fpr, &device)?;
         r.psnr_vs_original = Some(mean_psnr(&orig, &imgs));
+        r.psnr_on_asset_vs_original = mean_psnr_on_asset(&orig, &imgs, opts.background);
         rows.push(r);
     }
     Ok(SceneEval {
         views: cams.len(),
         psnr,
         ssim: ssim_mean,
+        psnr_on_asset: mean_psnr_on_asset(&orig, &mark, opts.background),
         fpr,
         rows,
         per_view,
@@ -497,5 +550,42 @@ mod tests {
         }
         assert!((coverage(&img, [1.0, 1.0, 1.0]) - 0.3).abs() < 1e-12);
         assert_eq!(coverage(&img, [0.0, 0.0, 0.0]), 1.0);
+    }
+
+    #[test]
+    fn the_asset_psnr_reads_the_change_on_the_asset_not_the_background_around_it() {
+        let black = [0.0; 3];
+        let blank = RgbImage::new(100, 80);
+        assert_eq!(psnr_on_asset(&blank, &blank, black), None);
+        // An asset on 10 % of the frame, every channel of it changed by 4 levels.
+        let mut a = RgbImage::new(100, 80);
+        for x in 0..20 {
+            for y in 0..40 {
+                a.put_pixel(x, y, image::Rgb([120, 90, 60]));
+            }
+        }
+        let mut b = a.clone();
+        for x in 0..20 {
+            for y in 0..40 {
+                b.put_pixel(x, y, image::Rgb([124, 94, 64]));
+            }
+        }
+        let on = psnr_on_asset(&a, &b, black).unwrap();
+        let want = 10.0 * (255.0f64 * 255.0 / 16.0).log10();
+        assert!((on - want).abs() < 1e-9, "{on} {want}");
+        // The frame's PSNR is 10·log10(1 / 0.1) = 10 dB higher for the same change.
+        assert!((psnr_u8(&a, &b) - on - 10.0).abs() < 1e-9);
+        // A pixel one image shows and the other does not (a hole, a clone) counts.
+        let mut holed = a.clone();
+        holed.put_pixel(0, 0, image::Rgb([0, 0, 0]));
+        let mut grown = a.clone();
+        grown.put_pixel(50, 50, image::Rgb([30, 30, 30]));
+        let hole = psnr_on_asset(&a, &holed, black).unwrap();
+        assert!(hole.is_finite() && hole < psnr_u8(&a, &holed), "{hole}");
+        assert_eq!(
+            psnr_on_asset(&a, &grown, black).unwrap(),
+            psnr_on_asset(&grown, &a, black).unwrap()
+        );
+        assert_eq!(psnr_on_asset(&a, &a, black), Some(f64::INFINITY));
     }
 }

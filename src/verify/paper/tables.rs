@@ -340,6 +340,7 @@ pub(crate) mod tests {
             detected: false,
             detection_rate_per_view: 0.0,
             psnr_vs_original: None,
+            psnr_on_asset_vs_original: None,
         };
         PaperRun {
             dataset: dataset.into(),
@@ -359,6 +360,7 @@ pub(crate) mod tests {
                 views: 5,
                 psnr,
                 ssim: 0.99,
+                psnr_on_asset: None,
                 fpr: 1e-6,
                 rows: vec![
                     r("clean", clean),
