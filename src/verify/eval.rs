@@ -199,6 +199,11 @@ fn psnr_u8(a: &RgbImage, b: &RgbImage) -> f64 {
         .map(|(&x, &y)| (f64::from(x) - f64::from(y)).powi(2))
         .sum::<f64>()
         / n;
+    psnr_of_mse(mse)
+}
+
+/// PSNR (dB) of a mean squared error in 8-bit levels; infinite for identical images.
+fn psnr_of_mse(mse: f64) -> f64 {
     if mse > 0.0 {
         10.0 * (255.0f64 * 255.0 / mse).log10()
     } else {
@@ -221,14 +226,7 @@ pub fn psnr_on_asset(a: &RgbImage, b: &RgbImage, background: [f32; 3]) -> Option
             n += 3;
         }
     }
-    (n > 0).then(|| {
-        let mse = se / n as f64;
-        if mse > 0.0 {
-            10.0 * (255.0f64 * 255.0 / mse).log10()
-        } else {
-            f64::INFINITY
-        }
-    })
+    (n > 0).then(|| psnr_of_mse(se / n as f64))
 }
 
 /// Mean of the views' [`psnr_on_asset`] over the views that show the asset.
