@@ -85,7 +85,8 @@ pub(crate) struct EmbedArgs {
     #[arg(long, default_value_t = 8)]
     holdout_every: usize,
     /// JSON file with the embedding options to start from (`EmbedOptions`, as the report's
-    /// `options` prints them; any field left out keeps its default); flags override it.
+    /// `options` prints them; any field left out keeps its default), or that JSON inline;
+    /// flags override it.
     #[arg(long)]
     config: Option<PathBuf>,
     /// Finetuning steps.
@@ -216,7 +217,7 @@ pub(crate) fn embed_cmd(a: &EmbedArgs, progress: ProgressMode) -> Result<()> {
     )?;
     let mut opts: EmbedOptions = match &a.config {
         Some(p) => {
-            let bytes = std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?;
+            let bytes = super::config::json_config(p)?;
             serde_json::from_slice(&bytes)
                 .with_context(|| format!("{} is not valid embedding options", p.display()))?
         }

@@ -28,7 +28,8 @@ pub struct FitArgs {
     /// images).
     #[arg(long)]
     pub images: Option<String>,
-    /// JSON file with a FitConfig (learning rates, densification; flags override it).
+    /// JSON file with a FitConfig (learning rates, densification), or that JSON inline; flags
+    /// override it.
     #[arg(long)]
     pub config: Option<PathBuf>,
     #[arg(long)]
@@ -98,7 +99,7 @@ struct Report<'a> {
 fn config_from(a: &FitArgs) -> Result<FitConfig> {
     let mut c = match &a.config {
         Some(p) => {
-            let text = std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?;
+            let text = super::config::json_config(p)?;
             serde_json::from_slice(&text)
                 .with_context(|| format!("invalid fit config {}", p.display()))?
         }

@@ -15,6 +15,7 @@ use crate::scene::{Camera, Gaussians, Limits};
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
 
+mod config;
 mod embed;
 mod explain;
 mod fit;
@@ -166,7 +167,7 @@ struct TrainArgs {
     /// sidecar, fresh optimiser) instead of random ones.
     #[arg(long)]
     init: Option<PathBuf>,
-    /// JSON file with a TrainConfig to start from (flags override it).
+    /// JSON file with a TrainConfig to start from, or that JSON inline (flags override it).
     #[arg(long)]
     config: Option<PathBuf>,
     /// Optimisation steps.
@@ -531,7 +532,7 @@ fn run(cli: Cli) -> Result<()> {
 fn train_cmd(a: &TrainArgs, progress: progress::ProgressMode) -> Result<()> {
     let base = match &a.config {
         Some(p) => {
-            let text = std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?;
+            let text = config::json_config(p)?;
             let mut c: TrainConfig = serde_json::from_slice(&text)
                 .with_context(|| format!("invalid training config {}", p.display()))?;
             c.bits = a.bits;

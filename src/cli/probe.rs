@@ -136,7 +136,7 @@ pub struct TrainOptArgs {
     /// Continue from the newest checkpoint (its settings; --steps may extend).
     #[arg(long)]
     resume: bool,
-    /// Start from a JSON `OptTrainConfig`.
+    /// Start from a JSON `OptTrainConfig` (a file, or the JSON inline).
     #[arg(long)]
     config: Option<PathBuf>,
     /// Folders whose held-out images the final probe uses (default: --images).
@@ -207,7 +207,7 @@ pub struct TrainOptArgs {
 }
 
 fn read_config(p: &Path) -> Result<OptTrainConfig> {
-    let text = std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?;
+    let text = super::config::json_config(p)?;
     serde_json::from_slice(&text).with_context(|| format!("invalid config {}", p.display()))
 }
 
@@ -335,8 +335,8 @@ pub struct PaperArgs {
     /// Skip Tables 5 and 6 (the ablations of the paper's recipe).
     #[arg(long)]
     no_ablations: bool,
-    /// Embedding options of Tables 1–3 (JSON, as `embed --config`); default: the defaults a
-    /// user gets.
+    /// Embedding options of Tables 1–3 (a JSON file or the JSON inline, as `embed --config`);
+    /// default: the defaults a user gets.
     #[arg(long)]
     config: Option<PathBuf>,
     /// Folder with decoder-{bits}.bpk artifacts (default: the shipped weights).
@@ -401,7 +401,7 @@ fn paper_cmd(a: &PaperArgs, progress: super::progress::ProgressMode) -> Result<(
     }
     o.ablations &= !a.no_ablations;
     if let Some(p) = &a.config {
-        let bytes = std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?;
+        let bytes = super::config::json_config(p)?;
         o.embed = serde_json::from_slice(&bytes)
             .with_context(|| format!("{} is not valid embedding options", p.display()))?;
     }
@@ -482,7 +482,8 @@ pub struct QualityArgs {
     /// orbit).
     #[arg(long, allow_hyphen_values = true)]
     eval_azimuth_offset: Option<f32>,
-    /// Embedding options (JSON, as `embed --config`); default: the defaults a user gets.
+    /// Embedding options (a JSON file or the JSON inline, as `embed --config`); default: the
+    /// defaults a user gets.
     #[arg(long)]
     config: Option<PathBuf>,
     /// Folder with decoder-{bits}.bpk artifacts (default: the shipped weights).
@@ -544,7 +545,7 @@ pub fn bench_cmd(c: &BenchCommand, progress: super::progress::ProgressMode) -> R
         o.eval_azimuth_offset_deg = d;
     }
     if let Some(p) = &a.config {
-        let bytes = std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?;
+        let bytes = super::config::json_config(p)?;
         o.embed = serde_json::from_slice(&bytes)
             .with_context(|| format!("{} is not valid embedding options", p.display()))?;
     }

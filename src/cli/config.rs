@@ -1,0 +1,39 @@
+//! The `--config` arguments that take JSON (embedding, fitting and training options): a file,
+//! or the JSON object itself written inline, so a command from docs/RESULTS.md such as
+//! `bench quality --config '{"finetune":{"steps":600}}'` runs as written.
+
+use anyhow::{Context, Result};
+use std::path::Path;
+
+/// The JSON bytes of a `--config` argument: the argument itself when it is a JSON object
+/// written inline (it starts with `{`, which no options file written by splatmark is named
+/// with), else the contents of the file it names.
+pub(crate) fn json_config(arg: &Path) -> Result<Vec<u8>> {
+    if let Some(s) = arg.to_str()
+        && s.trim_start().starts_with('{')
+    {
+        return Ok(s.as_bytes().to_vec());
+    }
+    std::fs::read(arg).with_context(|| format!("cannot read {}", arg.display()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_config_is_read_inline_or_from_its_file_and_a_missing_file_says_so() {
+        let inline = r#" {"finetune":{"steps":600}}"#;
+        assert_eq!(json_config(Path::new(inline)).unwrap(), inline.as_bytes());
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("c.json");
+        std::fs::write(&file, br#"{"seed":3}"#).unwrap();
+        assert_eq!(json_config(&file).unwrap(), br#"{"seed":3}"#);
+        let missing = dir.path().join("missing.json");
+        let e = json_config(&missing).unwrap_err().to_string();
+        assert!(
+            e.starts_with("cannot read ") && e.contains("missing.json"),
+            "{e}"
+        );
+    }
+}
