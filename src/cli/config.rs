@@ -3,7 +3,15 @@
 //! `bench quality --config '{"finetune":{"steps":600}}'` runs as written.
 
 use anyhow::{Context, Result};
+use serde::de::DeserializeOwned;
 use std::path::Path;
+
+/// The options a JSON `--config` argument holds ([`json_config`]), parsed; `what` names them in
+/// the error ("embedding options": "X is not valid embedding options: …").
+pub(crate) fn read_json_config<T: DeserializeOwned>(arg: &Path, what: &str) -> Result<T> {
+    let bytes = json_config(arg)?;
+    serde_json::from_slice(&bytes).with_context(|| format!("{} is not valid {what}", arg.display()))
+}
 
 /// The JSON bytes of a `--config` argument: the argument itself when it is a JSON object
 /// written inline (it starts with `{`, which no options file written by splatmark is named

@@ -216,11 +216,7 @@ pub(crate) fn embed_cmd(a: &EmbedArgs, progress: ProgressMode) -> Result<()> {
         &rasterizer.burn_device()?.autodiff(),
     )?;
     let mut opts: EmbedOptions = match &a.config {
-        Some(p) => {
-            let bytes = super::config::json_config(p)?;
-            serde_json::from_slice(&bytes)
-                .with_context(|| format!("{} is not valid embedding options", p.display()))?
-        }
+        Some(p) => super::config::read_json_config(p, "embedding options")?,
         None if a.paper => EmbedOptions::paper(),
         None => EmbedOptions::default(),
     };

@@ -98,11 +98,7 @@ struct Report<'a> {
 
 fn config_from(a: &FitArgs) -> Result<FitConfig> {
     let mut c = match &a.config {
-        Some(p) => {
-            let text = super::config::json_config(p)?;
-            serde_json::from_slice(&text)
-                .with_context(|| format!("invalid fit config {}", p.display()))?
-        }
+        Some(p) => super::config::read_json_config(p, "fit options")?,
         None => FitConfig::default(),
     };
     if let Some(v) = a.iterations {

@@ -532,9 +532,7 @@ fn run(cli: Cli) -> Result<()> {
 fn train_cmd(a: &TrainArgs, progress: progress::ProgressMode) -> Result<()> {
     let base = match &a.config {
         Some(p) => {
-            let text = config::json_config(p)?;
-            let mut c: TrainConfig = serde_json::from_slice(&text)
-                .with_context(|| format!("invalid training config {}", p.display()))?;
+            let mut c: TrainConfig = config::read_json_config(p, "training options")?;
             c.bits = a.bits;
             c
         }

@@ -207,8 +207,7 @@ pub struct TrainOptArgs {
 }
 
 fn read_config(p: &Path) -> Result<OptTrainConfig> {
-    let text = super::config::json_config(p)?;
-    serde_json::from_slice(&text).with_context(|| format!("invalid config {}", p.display()))
+    super::config::read_json_config(p, "train-opt options")
 }
 
 pub fn train_opt_cmd(a: &TrainOptArgs) -> Result<()> {
@@ -401,9 +400,7 @@ fn paper_cmd(a: &PaperArgs, progress: super::progress::ProgressMode) -> Result<(
     }
     o.ablations &= !a.no_ablations;
     if let Some(p) = &a.config {
-        let bytes = super::config::json_config(p)?;
-        o.embed = serde_json::from_slice(&bytes)
-            .with_context(|| format!("{} is not valid embedding options", p.display()))?;
+        o.embed = super::config::read_json_config(p, "embedding options")?;
     }
     o.weights_dir = a.weights_dir.clone();
     if let Some(v) = a.view_scale {
@@ -545,9 +542,7 @@ pub fn bench_cmd(c: &BenchCommand, progress: super::progress::ProgressMode) -> R
         o.eval_azimuth_offset_deg = d;
     }
     if let Some(p) = &a.config {
-        let bytes = super::config::json_config(p)?;
-        o.embed = serde_json::from_slice(&bytes)
-            .with_context(|| format!("{} is not valid embedding options", p.display()))?;
+        o.embed = super::config::read_json_config(p, "embedding options")?;
     }
     o.weights_dir = a.weights_dir.clone();
     o.seed = a.seed;
