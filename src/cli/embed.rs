@@ -350,11 +350,6 @@ fn report_progress(bar: &mut Progress, p: &crate::embed::pipeline::Progress, eve
     };
     match p.phase {
         Phase::Targets => phase(bar, "rendering targets", 0),
-        Phase::Densify => phase(
-            bar,
-            "splitting the small asset and refitting the children",
-            0,
-        ),
         Phase::Plan => phase(bar, "pruning, scoring, selecting and splitting carriers", 0),
         Phase::Calibrate => phase(
             bar,

@@ -31,7 +31,6 @@ pub mod mask;
 pub mod path;
 pub mod pipeline;
 pub mod prune;
-pub mod redundancy;
 pub mod sbag;
 pub mod stats;
 

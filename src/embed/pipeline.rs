@@ -14,7 +14,6 @@ use super::finetune::{
 };
 use super::mask::MaskConfig;
 use super::path::{PathConfig, path_cameras};
-use super::redundancy::{RedundancyConfig, RedundancyReport, densify};
 use super::sbag::Budget;
 use super::{EmbedConfig, plan_over};
 use crate::decoder::WatermarkModel;
@@ -78,10 +77,6 @@ pub struct EmbedOptions {
     /// training views: 86.3 % of the bits on unseen views with 24 read, 95.3 % with all;
     /// docs/RESULTS.md).
     pub analysis_views: usize,
-    /// Small assets split into children refitted to the original before the pipeline
-    /// ([`crate::embed::redundancy`]), so that removing or cloning a fifth of the Gaussians
-    /// thins the asset instead of cutting holes in it. [`EmbedOptions::paper`]: off.
-    pub redundancy: RedundancyConfig,
 }
 
 impl Default for EmbedOptions {
@@ -96,7 +91,6 @@ impl Default for EmbedOptions {
             extra_views: 0,
             path: PathConfig::default(),
             analysis_views: 24,
-            redundancy: RedundancyConfig::default(),
         }
     }
 }
@@ -204,10 +198,6 @@ impl EmbedOptions {
             },
             // The paper reads every training view.
             analysis_views: 0,
-            redundancy: RedundancyConfig {
-                copies: 1,
-                ..RedundancyConfig::default()
-            },
             ..Self::default()
         }
     }
@@ -223,8 +213,6 @@ impl EmbedOptions {
 #[serde(rename_all = "snake_case")]
 pub enum Phase {
     Targets,
-    /// A small asset split and refitted ([`EmbedOptions::redundancy`]).
-    Densify,
     Plan,
     /// The matched head and the reference logits, measured on the original.
     Calibrate,
@@ -257,17 +245,12 @@ pub enum EmbedError {
     Cancelled,
     #[error("invalid embedding options: {0}")]
     Invalid(String),
-    #[error("densifying the asset: {0}")]
-    Densify(#[from] crate::fit::FitError),
 }
 
 /// Seconds spent per phase.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Timings {
     pub targets: f64,
-    /// Splitting and refitting a small asset ([`EmbedOptions::redundancy`]).
-    #[serde(default)]
-    pub densify: f64,
     pub plan: f64,
     /// Fitting the matched head (or view projection) and the reference logits on the original.
     #[serde(default)]
@@ -292,9 +275,6 @@ pub struct EmbedReport {
     /// ([`EmbedOptions::analysis_views`]).
     pub analysis_views: usize,
     pub input_gaussians: usize,
-    /// The split and refit of a small asset, when it ran ([`EmbedOptions::redundancy`]).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub redundancy: Option<RedundancyReport>,
     pub pruned: usize,
     pub output_gaussians: usize,
     pub carriers: usize,
@@ -355,7 +335,6 @@ pub fn embed(
     }
     opts.finetune.validate().map_err(EmbedError::Invalid)?;
     opts.path.validate().map_err(EmbedError::Invalid)?;
-    opts.redundancy.validate().map_err(EmbedError::Invalid)?;
     // The most steps finetuning may take (it may stop early when `extra_steps` > 0).
     let total = opts.finetune.steps + opts.finetune.extra_steps;
     let report_phase = |p: &mut dyn FnMut(Progress) -> ControlFlow<()>, phase| match p(Progress {
@@ -395,20 +374,6 @@ pub fn embed(
         &opts.finetune.rasterizer,
     )?;
     let t_targets = t.elapsed().as_secs_f64();
-    let input_gaussians = g.len();
-    let t = Instant::now();
-    let dense = if opts.redundancy.applies(g.len()) {
-        report_phase(&mut progress, Phase::Densify)?;
-        densify(g, &views, ro.background, &opts.redundancy)?
-    } else {
-        None
-    };
-    let (g, redundancy) = match dense {
-        Some((s, r)) => (std::borrow::Cow::Owned(s), Some(r)),
-        None => (std::borrow::Cow::Borrowed(g), None),
-    };
-    let g: &Gaussians = &g;
-    let t_densify = t.elapsed().as_secs_f64();
     // What planning and calibration read: every training view, or a spread subset of them.
     let cap = if message.len() > 32 {
         0
@@ -532,8 +497,7 @@ pub fn embed(
         views: cameras.len(),
         path_views: path_count,
         analysis_views: pick.len(),
-        input_gaussians,
-        redundancy,
+        input_gaussians: g.len(),
         pruned: p.prune.as_ref().map_or(0, |r| r.removed()),
         output_gaussians: ft.gaussians.len(),
         carriers,
@@ -547,7 +511,6 @@ pub fn embed(
         stretch: ft.stretch,
         timings: Timings {
             targets: t_targets,
-            densify: t_densify,
             plan: t_plan,
             calibrate: t_calibrate,
             finetune: t_ft,

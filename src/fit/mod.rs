@@ -133,8 +133,6 @@ pub struct FitConfig {
     pub sh_degree: u8,
     /// One more SH degree every this many steps.
     pub sh_up_every: usize,
-    /// SH degree in use at step 0 (0 from points; a refit of a fitted scene starts at its own).
-    pub sh_start: u8,
     /// λ of the D-SSIM term.
     pub lambda_dssim: f32,
     /// Random start points (Blender scenes).
@@ -150,7 +148,6 @@ impl Default for FitConfig {
             iterations: 7_000,
             sh_degree: 3,
             sh_up_every: 1000,
-            sh_start: 0,
             lambda_dssim: 0.2,
             init_points: 100_000,
             seed: 0,
@@ -267,28 +264,7 @@ impl Fitter {
         cfg.validate()?;
         let mut rng = Rng::new(cfg.seed ^ 0x05EE_DF17_u64);
         let scene = initial_scene(&ds.init, cfg.init_points, cfg.sh_degree, &mut rng)?;
-        Ok(Self::start(ds, cfg, scene, rng))
-    }
-
-    /// Starts a fit of `ds` from `scene` (a refit: [`crate::embed::redundancy`]); the scene's SH
-    /// degree must be the configuration's.
-    pub fn from_scene(ds: &Dataset, cfg: FitConfig, scene: Gaussians) -> Result<Self, FitError> {
-        cfg.validate()?;
-        if scene.is_empty() {
-            return Err(FitError::Data("no Gaussians to start from".into()));
-        }
-        if scene.sh_degree != cfg.sh_degree {
-            return Err(FitError::Config(format!(
-                "the scene has SH degree {}, the configuration {}",
-                scene.sh_degree, cfg.sh_degree
-            )));
-        }
-        let rng = Rng::new(cfg.seed ^ 0x05EE_DF17_u64);
-        Ok(Self::start(ds, cfg, scene, rng))
-    }
-
-    fn start(ds: &Dataset, cfg: FitConfig, scene: Gaussians, rng: Rng) -> Self {
-        Self {
+        Ok(Self {
             adam: Adam::new(&scene),
             stats: DensifyStats::new(scene.len()),
             scene,
@@ -297,14 +273,12 @@ impl Fitter {
             rng,
             order: Vec::new(),
             fingerprint: ds.fingerprint.clone(),
-        }
+        })
     }
 
     /// SH degree in use at the current step.
     pub fn active_sh_degree(&self) -> u8 {
-        (self.step / self.cfg.sh_up_every)
-            .saturating_add(usize::from(self.cfg.sh_start))
-            .min(usize::from(self.cfg.sh_degree)) as u8
+        ((self.step / self.cfg.sh_up_every) as u8).min(self.cfg.sh_degree)
     }
 
     /// The fitted scene as it would be written: unit quaternions.

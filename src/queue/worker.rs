@@ -165,7 +165,6 @@ async fn worker_loop(ctx: Arc<Ctx>, w: WorkerSpec) {
 fn update(p: &Progress, started: &mut Option<Instant>) -> ProgressUpdate {
     let phase = match p.phase {
         Phase::Targets => "targets",
-        Phase::Densify => "densify",
         Phase::Plan => "plan",
         Phase::Calibrate => "calibrate",
         Phase::Finetune => "finetune",
