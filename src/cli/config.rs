@@ -16,7 +16,7 @@ pub(crate) fn read_json_config<T: DeserializeOwned>(arg: &Path, what: &str) -> R
 /// The JSON bytes of a `--config` argument: the argument itself when it is a JSON object
 /// written inline (it starts with `{`, which no options file written by splatmark is named
 /// with), else the contents of the file it names.
-pub(crate) fn json_config(arg: &Path) -> Result<Vec<u8>> {
+fn json_config(arg: &Path) -> Result<Vec<u8>> {
     if let Some(s) = arg.to_str()
         && s.trim_start().starts_with('{')
     {
