@@ -213,7 +213,7 @@ pub fn decoder_gain(
 
 /// [`decoder_gain`] over the 8-bit renders of the views.
 fn gain_of_renders(renders: &[image::RgbImage], model: &WatermarkModel) -> Vec<f64> {
-    use rayon::prelude::*;
+    use burn::tensor::{Device, Tensor, TensorData};
     let device = model.device().autodiff();
     let f = model.decoder.feature_count();
     let levels = model.decoder.dwt_levels();
@@ -230,36 +230,27 @@ fn gain_of_renders(renders: &[image::RgbImage], model: &WatermarkModel) -> Vec<f
             .decoder
             .band_jacobian(&values, h, w)
             .unwrap_or_else(|| jacobian_by_backward(model, band, f, &device));
-        let rows: Vec<Vec<f64>> = jac
+        // G += R·Rᵀ / views, R the F × n rows times √d: one f32 matrix product (gemm), summed
+        // into G in f64.
+        let rows: Vec<f32> = jac
             .chunks_exact(n)
-            .map(|row| {
+            .flat_map(|row| {
                 row.iter()
                     .enumerate()
-                    .map(|(k, &v)| v * root_d[k % (h * w)])
-                    .collect()
+                    .map(|(k, &v)| (v * root_d[k % (h * w)]) as f32)
             })
             .collect();
-        let upper: Vec<Vec<f64>> = (0..f)
-            .into_par_iter()
-            .map(|i| {
-                (i..f)
-                    .map(|j| {
-                        rows[i]
-                            .iter()
-                            .zip(&rows[j])
-                            .map(|(a, b)| a * b)
-                            .sum::<f64>()
-                            / views
-                    })
-                    .collect()
-            })
-            .collect();
-        for (i, vs) in upper.iter().enumerate() {
-            for (j, &v) in (i..f).zip(vs) {
-                gain[i * f + j] += v;
-                if i != j {
-                    gain[j * f + i] += v;
-                }
+        let r = Tensor::<2>::from_data(TensorData::new(rows, [f, n]), &Device::flex());
+        let rrt: Vec<f32> = r
+            .clone()
+            .matmul(r.transpose())
+            .try_into_vec_as::<f32>()
+            .expect("a product on the host");
+        // (Symmetric up to the product's rounding: kept exactly symmetric.)
+        for i in 0..f {
+            for j in 0..f {
+                let v = 0.5 * (f64::from(rrt[i * f + j]) + f64::from(rrt[j * f + i]));
+                gain[i * f + j] += v / views;
             }
         }
     }

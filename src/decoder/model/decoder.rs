@@ -226,8 +226,22 @@ impl HiddenDecoder {
         self.linear.forward(pooled)
     }
 
-    /// Pooled features `[B, F]` of a centred LL band ([`decoder_input`]).
+    /// Pooled features `[B, F]` of a centred LL band ([`decoder_input`]). A colour-Fourier
+    /// decoder reading a band on the CPU without autodiff (calibration, verification,
+    /// evaluation) computes them on the host ([`super::FourierHost`]: the same function, fused).
     pub fn pooled_band(&self, band: Tensor<4>) -> Tensor<2> {
+        if let Some(host) = (!band.is_autodiff() && band.device() == Device::flex())
+            .then(|| self.fourier_host())
+            .flatten()
+        {
+            let [b, _, h, w] = band.dims();
+            let values: Vec<f32> = band.try_into_vec_as::<f32>().expect("a band on the host");
+            let pooled = host.forward(&values, h, w).pooled;
+            return Tensor::from_data(
+                TensorData::new(pooled, [b, host.features()]),
+                &Device::flex(),
+            );
+        }
         let mut x = if self.input_gain == 1.0 {
             band
         } else {
@@ -254,6 +268,24 @@ impl HiddenDecoder {
         }
         let [b, l, _, _] = x.dims();
         adaptive_avg_pool2d(x, [1, 1]).reshape([b, l])
+    }
+
+    /// The colour-Fourier projection on the host ([`FourierHost`]: the pooled features and
+    /// their gradient in one fused pass), or `None` for the convolutional decoders.
+    pub fn fourier_host(&self) -> Option<super::FourierHost> {
+        let conv = self.fourier.as_ref()?;
+        let omega: Vec<f32> = conv.weight.val().try_into_vec_as::<f32>().ok()?;
+        let f = omega.len() / 3;
+        let beta: Vec<f32> = match &conv.bias {
+            Some(b) => b.val().try_into_vec_as::<f32>().ok()?,
+            None => vec![0.0; f],
+        };
+        Some(super::FourierHost::new(
+            &omega,
+            &beta,
+            self.input_gain,
+            self.fourier_dark,
+        ))
     }
 
     /// ∂(pooled features)/∂(band) of one centred band (`band`: `[3, h, w]`, planar, as
@@ -442,6 +474,75 @@ mod tests {
             .with_depth(1)
             .init(&ad);
         assert!(conv.band_jacobian(&band, h, w).is_none());
+    }
+
+    #[test]
+    fn the_fused_host_features_and_their_gradient_are_burns() {
+        // Two images of 37 × 41 (two pixel chunks), 13 features (not a multiple of the lanes).
+        let (b, h, w, f) = (2, 37, 41, 13);
+        let mut rng = Lcg(9);
+        let band: Vec<f32> = (0..b * 3 * h * w)
+            .map(|k| {
+                if k % 11 == 0 {
+                    -0.97
+                } else {
+                    2.0 * rng.uniform() - 1.0
+                }
+            })
+            .collect();
+        let g: Vec<f32> = (0..b * f).map(|_| 2.0 * rng.uniform() - 1.0).collect();
+        let ad = Device::flex().autodiff();
+        for (dark, gain) in [(0.1, 1.0), (0.0, 1.5)] {
+            let dec = HiddenDecoderConfig::new(8)
+                .with_fourier(f)
+                .with_fourier_scale(16.0)
+                .with_fourier_dark(dark)
+                .with_input_gain(gain)
+                .init(&ad);
+            let host = dec.fourier_host().expect("colour-Fourier");
+            let pass = host.forward(&band, h, w);
+            let fused = host.backward(&band, &pass, &g);
+            let x = Tensor::<4>::from_data(TensorData::new(band.clone(), [b, 3, h, w]), &ad)
+                .require_grad();
+            let pooled = dec.pooled_band(x.clone());
+            let gt = Tensor::<2>::from_data(TensorData::new(g.clone(), [b, f]), &ad);
+            let burn_pooled = pooled.clone().detach().try_into_vec_as::<f32>().unwrap();
+            for (k, (a, e)) in pass.pooled.iter().zip(&burn_pooled).enumerate() {
+                assert!((a - e).abs() < 2e-5, "dark {dark}, feature {k}: {a} vs {e}");
+            }
+            let grads = pooled.mul(gt).sum().backward();
+            let slow = x.grad(&grads).unwrap().try_into_vec_as::<f32>().unwrap();
+            let peak = slow.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+            for (k, (a, e)) in fused.iter().zip(&slow).enumerate() {
+                assert!(
+                    (a - e).abs() < 1e-4 * peak,
+                    "dark {dark}, entry {k}: {a} vs {e} (peak {peak})"
+                );
+            }
+        }
+        // Without autodiff on the CPU the decoder itself reads its features on the host.
+        let dec = HiddenDecoderConfig::new(8)
+            .with_fourier(f)
+            .with_fourier_scale(16.0)
+            .with_fourier_dark(0.1)
+            .init(&Device::flex());
+        let plain =
+            Tensor::<4>::from_data(TensorData::new(band.clone(), [b, 3, h, w]), &Device::flex());
+        let on_ad = Tensor::<4>::from_data(TensorData::new(band.clone(), [b, 3, h, w]), &ad);
+        let host = dec.pooled_band(plain).try_into_vec_as::<f32>().unwrap();
+        let burn = dec.pooled_band(on_ad).try_into_vec_as::<f32>().unwrap();
+        assert_eq!(
+            host,
+            dec.fourier_host().unwrap().forward(&band, h, w).pooled
+        );
+        for (a, e) in host.iter().zip(&burn) {
+            assert!((a - e).abs() < 2e-5, "{a} vs {e}");
+        }
+        let conv = HiddenDecoderConfig::new(8)
+            .with_channels(4)
+            .with_depth(1)
+            .init(&ad);
+        assert!(conv.fourier_host().is_none());
     }
 
     #[test]

@@ -37,10 +37,12 @@
 
 mod decoder;
 mod encoder;
+mod fourier;
 mod whitening;
 
 pub use decoder::{HiddenDecoder, HiddenDecoderConfig, decoder_input};
 pub use encoder::{HiddenEncoder, HiddenEncoderConfig};
+pub use fourier::{FourierHost, FourierPass, HostFeatures, sin_cos};
 pub use whitening::{WHITENING_EIGEN_FLOOR, Whitening, WhiteningError, symmetric_eigen};
 
 use burn::module::Module;

@@ -46,13 +46,14 @@
 use std::ops::ControlFlow;
 use std::time::Instant;
 
-use burn::tensor::{Tensor, TensorData};
+use burn::tensor::{Device, Tensor, TensorData};
 use serde::{Deserialize, Serialize};
 
 use super::mask::Masks;
 use crate::attack::diff::{DiffAttack, DiffAttackError, EotRng, random_composition};
 use crate::attack::model::ModelAttack;
 use crate::decoder::WatermarkModel;
+use crate::decoder::model::{FourierHost, HostFeatures, decoder_input};
 use crate::render::RenderError;
 use crate::render::gpu::Rasterizer;
 use crate::scene::Gaussians;
@@ -292,6 +293,12 @@ pub fn finetune(
         _ => None,
     };
 
+    // On the CPU the colour-Fourier decoder's features and their gradient are computed on the
+    // host in one fused pass (`FourierHost`: the same function, no F × pixels tensors).
+    let host_features = (!resident && model.device().without_autodiff() == Device::flex())
+        .then(|| model.decoder.fourier_host())
+        .flatten();
+
     // Where the schedule ends: `steps`, or twice that once `stretch_bce` stretched it.
     let mut schedule_end = cfg.steps;
     let mut stretch = None;
@@ -404,7 +411,14 @@ pub fn finetune(
                 .require_grad())
             })
             .collect::<Result<Vec<_>, FinetuneError>>()?;
-        let (z_cl, z_t, low) = decode_views(model, &xs, &targets, attack.as_ref(), cfg.dwt_levels)?;
+        let (z_cl, z_t, low, on_host) = decode_views(
+            model,
+            &xs,
+            &targets,
+            attack.as_ref(),
+            cfg.dwt_levels,
+            host_features.as_ref(),
+        )?;
         let margin = Margin {
             margin: cfg.wm_margin,
             sharpness: cfg.wm_sharpness,
@@ -470,7 +484,8 @@ pub fn finetune(
             (1.0, 1.0)
         };
         // ∂L/∂image of each view, one for each route.
-        let d_images = vis.image_grads(l_wm, &xs, wm_scale, vis_scale, &model.device());
+        let host = host_features.as_ref().map(|h| (h, on_host));
+        let d_images = vis.image_grads(l_wm, &xs, host, wm_scale, vis_scale, &model.device());
         // (burn runs lazily on a GPU: the decoder's time shows where its results are read.)
         StepPhases::lap(&mut phases.watermark, &mut mark);
 
@@ -666,27 +681,43 @@ fn decode_views(
     targets: &[Tensor<4>],
     attack: Option<&DiffAttack>,
     levels: usize,
-) -> Result<(Vec<Tensor<2>>, Vec<Tensor<2>>, Tensor<1>), FinetuneError> {
+    host: Option<&FourierHost>,
+) -> Result<Decoded, FinetuneError> {
     let one_size = xs.windows(2).all(|p| p[0].dims() == p[1].dims());
-    let groups: Vec<(Tensor<4>, Tensor<4>, usize)> = if one_size {
-        vec![(
-            Tensor::cat(xs.to_vec(), 0),
-            Tensor::cat(targets.to_vec(), 0),
-            xs.len(),
-        )]
+    let groups: Vec<std::ops::Range<usize>> = if one_size {
+        std::iter::once(0..xs.len()).collect()
     } else {
-        xs.iter()
-            .zip(targets)
-            .map(|(x, t)| (x.clone(), t.clone(), 1))
-            .collect()
+        (0..xs.len()).map(|k| k..k + 1).collect()
+    };
+    let stack = |ts: &[Tensor<4>]| match ts {
+        [one] => one.clone(),
+        many => Tensor::cat(many.to_vec(), 0),
     };
     let (mut z_cl, mut z_t) = (Vec::with_capacity(xs.len()), Vec::with_capacity(xs.len()));
     let mut low: Option<Tensor<1>> = None;
-    for (x, t, n) in groups {
-        let saved = as_saved(x.clone());
-        let clean = model.forward(saved.clone());
+    let mut on_host = Vec::new();
+    // The decoder's logits; its features computed on the host when `host` is given.
+    let mut forward = |images: Tensor<4>| match host {
+        Some(h) => {
+            let f = h.features_of(decoder_input(images, model.decoder.dwt_levels()));
+            let z = model.forward_pooled(f.leaf());
+            on_host.push(f);
+            z
+        }
+        None => model.forward(images),
+    };
+    for r in groups {
+        let (x, t, n) = (stack(&xs[r.clone()]), stack(&targets[r.clone()]), r.len());
+        // Host features take burn's backward in two passes (∂L/∂features first), so the
+        // band L1 reads the views through a stack of its own, not shared with the decoder's.
+        let x_low = match host {
+            Some(_) => stack(&xs[r]),
+            None => x.clone(),
+        };
+        let saved = as_saved(x);
+        let clean = forward(saved.clone());
         let attacked = match attack {
-            Some(a) => model.forward(a.apply(saved)?),
+            Some(a) => forward(a.apply(saved)?),
             None => clean.clone(),
         };
         for k in 0..n {
@@ -694,11 +725,15 @@ fn decode_views(
             z_t.push(attacked.clone().narrow(0, k, 1));
         }
         // The batch's mean over equal-sized views, times their count: the sum of their means.
-        let b = band_l1(x, t, levels, true).mul_scalar(n as f64);
+        let b = band_l1(x_low, t, levels, true).mul_scalar(n as f64);
         low = Some(low.map_or(b.clone(), |a| a.add(b)));
     }
-    Ok((z_cl, z_t, low.expect("a step has views")))
+    Ok((z_cl, z_t, low.expect("a step has views"), on_host))
 }
+
+/// [`decode_views`]' logits of the clean and the attacked views, the LL band's L1, and the
+/// features computed on the host (empty when burn computed them).
+type Decoded = (Vec<Tensor<2>>, Vec<Tensor<2>>, Tensor<1>, Vec<HostFeatures>);
 
 /// The step after which `stretch_bce` decides: three tenths of `steps` (where the EOT ramp
 /// of the defaults completes).

@@ -16,6 +16,7 @@ use super::optim::add_into;
 use super::views::{Frame, Renderer};
 use super::visual::visual_loss;
 use super::{FinetuneError, LossWeights};
+use crate::decoder::model::{FourierHost, HostFeatures};
 use crate::render::RenderError;
 use crate::render::gpu::GpuGrads;
 use crate::scene::Gaussians;
@@ -136,6 +137,7 @@ impl Visual {
         self,
         l_wm: Tensor<1>,
         xs: &[Tensor<4>],
+        host: Option<(&FourierHost, Vec<HostFeatures>)>,
         wm_scale: f32,
         vis_scale: f32,
         device: &Device,
@@ -159,16 +161,39 @@ impl Visual {
             }
             Visual::Host(per_view) => {
                 let gw = l_wm.mul_scalar(wm_scale).backward();
+                // Features the host computed: their gradient on into the bands' graphs.
+                let gs = host
+                    .and_then(|(h, features)| {
+                        features
+                            .iter()
+                            .filter_map(|f| f.surrogate(h, &gw))
+                            .reduce(|a, b| a.add(b))
+                    })
+                    .map(|s| s.backward());
+                let read = |x: &Tensor<4>| {
+                    let mut d: Vec<f32> = x
+                        .grad(&gw)
+                        .map(|t| t.try_into_vec_as::<f32>().unwrap_or_default())
+                        .unwrap_or_default();
+                    let e: Vec<f32> = gs
+                        .as_ref()
+                        .and_then(|gs| x.grad(gs))
+                        .map(|t| t.try_into_vec_as::<f32>().unwrap_or_default())
+                        .unwrap_or_default();
+                    if d.len() == e.len() {
+                        d.iter_mut().zip(&e).for_each(|(a, b)| *a += b);
+                    } else if d.is_empty() {
+                        d = e;
+                    }
+                    d
+                };
                 let f = (f64::from(vis_scale) / per_view.len() as f64) as f32;
                 ImageGrads::Host(
                     xs.iter()
                         .zip(per_view)
                         .map(|(x, (_, d_vis))| {
                             let n = d_vis.len();
-                            let d: Vec<f32> = x
-                                .grad(&gw)
-                                .map(|t| t.try_into_vec_as::<f32>().unwrap_or_default())
-                                .unwrap_or_default();
+                            let d = read(x);
                             let d_wm = if d.len() == 3 * n {
                                 from_planar(&d, n)
                             } else {

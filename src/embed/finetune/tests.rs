@@ -609,18 +609,19 @@ fn views_decoded_as_one_batch_give_each_views_own_logits_and_gradient() {
     };
     // All three at once, then each alone.
     let xs = leaves();
-    let (z_cl, z_t, low) = decode_views(&m, &xs, &targets, Some(&blur), 2).unwrap();
+    let (z_cl, z_t, low, _) = decode_views(&m, &xs, &targets, Some(&blur), 2, None).unwrap();
     let grads = loss(&z_cl, &z_t, low.clone()).backward();
     let values = |t: &Tensor<2>| t.clone().detach().try_into_vec_as::<f32>().unwrap();
     let mut low_sum = 0.0;
     for k in 0..3 {
         let x = leaves().swap_remove(k);
-        let (c, a, l) = decode_views(
+        let (c, a, l, _) = decode_views(
             &m,
             std::slice::from_ref(&x),
             &targets[k..=k],
             Some(&blur),
             2,
+            None,
         )
         .unwrap();
         low_sum += l.clone().into_scalar::<f32>();
@@ -644,6 +645,94 @@ fn views_decoded_as_one_batch_give_each_views_own_logits_and_gradient() {
         (low - low_sum).abs() <= 1e-5 * low_sum.abs().max(1.0),
         "{low} vs {low_sum}"
     );
+}
+
+#[test]
+fn the_shipped_decoders_features_on_the_host_give_burns_logits_and_image_gradient() {
+    // The CPU step's path (features and their gradient fused on the host, handed back to burn
+    // through the attack and the DWT) against burn's own decoder, on renders of two views.
+    let device = Device::flex().autodiff();
+    let m = WatermarkModel::shipped(32, &Device::flex()).expect("shipped weights");
+    let host = m
+        .decoder
+        .fourier_host()
+        .expect("the shipped decoder is colour-Fourier");
+    let (g, views, opts) = setup();
+    let (w, h) = (
+        views[0].camera.width as usize,
+        views[0].camera.height as usize,
+    );
+    let images: Vec<Vec<[f32; 3]>> = views[..2]
+        .iter()
+        .map(|v| render::render(&g, &v.camera, &opts).unwrap().image)
+        .collect();
+    let targets: Vec<Tensor<4>> = views[..2]
+        .iter()
+        .map(|v| to_tensor(&v.target, w, h, &device))
+        .collect();
+    let bits = Tensor::<2>::from_data(
+        TensorData::new(
+            (0..32).map(|i| (i % 3 == 0) as u8 as f32).collect(),
+            [1, 32],
+        ),
+        &device,
+    );
+    let attack = DiffAttack::Blur {
+        sigma: 1.0,
+        kernel: 5,
+    };
+    let run = |fused: Option<&FourierHost>| {
+        let xs: Vec<Tensor<4>> = images
+            .iter()
+            .map(|im| to_tensor(im, w, h, &device).require_grad())
+            .collect();
+        let (z_cl, z_t, low, on_host) =
+            decode_views(&m, &xs, &targets, Some(&attack), 2, fused).unwrap();
+        assert_eq!(on_host.len(), if fused.is_some() { 2 } else { 0 });
+        let l_wm = views_bce(&z_cl, &bits, false, Margin::BCE)
+            .add(views_bce(&z_t, &bits, true, Margin::BCE))
+            .add(low.mul_scalar(0.5));
+        let logits: Vec<f32> = z_t[1].clone().detach().try_into_vec_as().unwrap();
+        let vis = routes::Visual::Host(
+            images
+                .iter()
+                .map(|im| (0.0, vec![[0.0; 3]; im.len()]))
+                .collect(),
+        );
+        let routes::ImageGrads::Host(d) = vis.image_grads(
+            l_wm,
+            &xs,
+            fused.map(|h| (h, on_host)),
+            2.0,
+            1.0,
+            &Device::flex(),
+        ) else {
+            panic!("host gradients");
+        };
+        (logits, d)
+    };
+    let (z_burn, d_burn) = run(None);
+    let (z_host, d_host) = run(Some(&host));
+    for (a, b) in z_host.iter().zip(&z_burn) {
+        assert!((a - b).abs() < 1e-3 * (1.0 + b.abs()), "logit {a} vs {b}");
+    }
+    for (v, (a, b)) in d_host.iter().zip(&d_burn).enumerate() {
+        let peak = b[0]
+            .iter()
+            .flat_map(|p| p.iter())
+            .fold(0.0f32, |m, x| m.max(x.abs()));
+        assert!(peak > 0.0, "view {v}: the loss reaches the image");
+        for (p, q) in a[0].iter().zip(&b[0]) {
+            for c in 0..3 {
+                assert!(
+                    (p[c] - q[c]).abs() <= 2e-3 * peak,
+                    "view {v}: {} vs {} (peak {peak})",
+                    p[c],
+                    q[c]
+                );
+            }
+        }
+    }
 }
 
 #[test]

@@ -184,8 +184,8 @@ fn the_shipped_decoder_reads_every_eot_attack_alike_on_the_gpu_device() {
             let x = Tensor::<4>::from_data(TensorData::new(image.clone(), [1, 3, h, w]), device)
                 .require_grad();
             let t = Tensor::<4>::from_data(TensorData::new(target.clone(), [1, 3, h, w]), device);
-            let (_, z, low) =
-                decode_views(m, std::slice::from_ref(&x), &[t], Some(&attack), 2).unwrap();
+            let (_, z, low, _) =
+                decode_views(m, std::slice::from_ref(&x), &[t], Some(&attack), 2, None).unwrap();
             let wz = Tensor::<2>::from_data(TensorData::new(weights.clone(), [1, 32]), device);
             let grads = z[0].clone().mul(wz).sum().add(low).backward();
             let z: Vec<f32> = z[0].clone().detach().try_into_vec_as().unwrap();
