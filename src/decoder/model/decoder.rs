@@ -433,19 +433,24 @@ mod tests {
         assert!(HiddenDecoder::load(&other, &path, &device()).is_err());
     }
 
-    #[test]
-    fn the_colour_fourier_jacobian_in_closed_form_is_autodiffs() {
-        let (h, w) = (6, 5);
-        let mut rng = Lcg(5);
-        let band: Vec<f32> = (0..3 * h * w)
+    /// Band values uniform in [−1, 1), every `every`-th one `dark` (a near-black pixel, where
+    /// the dark weight bends).
+    fn centred_band(len: usize, every: usize, dark: f32, rng: &mut Lcg) -> Vec<f32> {
+        (0..len)
             .map(|k| {
-                if k % 7 == 0 {
-                    -0.95
+                if k % every == 0 {
+                    dark
                 } else {
                     2.0 * rng.uniform() - 1.0
                 }
             })
-            .collect();
+            .collect()
+    }
+
+    #[test]
+    fn the_colour_fourier_jacobian_in_closed_form_is_autodiffs() {
+        let (h, w) = (6, 5);
+        let band = centred_band(3 * h * w, 7, -0.95, &mut Lcg(5));
         let ad = Device::flex().autodiff();
         for (dark, gain) in [(0.1, 1.0), (0.0, 1.5)] {
             let dec = HiddenDecoderConfig::new(8)
@@ -481,15 +486,7 @@ mod tests {
         // Two images of 37 × 41 (two pixel chunks), 13 features (not a multiple of the lanes).
         let (b, h, w, f) = (2, 37, 41, 13);
         let mut rng = Lcg(9);
-        let band: Vec<f32> = (0..b * 3 * h * w)
-            .map(|k| {
-                if k % 11 == 0 {
-                    -0.97
-                } else {
-                    2.0 * rng.uniform() - 1.0
-                }
-            })
-            .collect();
+        let band = centred_band(b * 3 * h * w, 11, -0.97, &mut rng);
         let g: Vec<f32> = (0..b * f).map(|_| 2.0 * rng.uniform() - 1.0).collect();
         let ad = Device::flex().autodiff();
         for (dark, gain) in [(0.1, 1.0), (0.0, 1.5)] {
