@@ -247,7 +247,7 @@ impl Default for Config {
             master_key_file: None,
             weights_dir: None,
             views: ViewDefaults::default(),
-            steps: 300,
+            steps: 350,
             log_json: false,
         }
     }

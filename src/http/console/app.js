@@ -227,7 +227,7 @@ function jobsList(asset, where) {
 
 function watermarkForm(asset, where) {
   const bits = h("select", { id: "wm-bits" }, [32, 48, 64].map((b) => h("option", { value: b }, `${b} bits`)));
-  const steps = h("input", { type: "text", id: "wm-steps", placeholder: "default (300)", inputmode: "numeric" });
+  const steps = h("input", { type: "text", id: "wm-steps", placeholder: "default (350)", inputmode: "numeric" });
   const options = h("textarea", { id: "wm-options", rows: 3, cols: 60, placeholder: '{"orbit": {"count": 24, "width": 512, "height": 512}}' });
   const out = h("div");
   return card("Watermark this scene", h("form", {
