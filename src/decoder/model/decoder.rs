@@ -270,16 +270,22 @@ impl HiddenDecoder {
         adaptive_avg_pool2d(x, [1, 1]).reshape([b, l])
     }
 
+    /// The colour-Fourier projection's weights on the host: Ω (`F × 3`, row-major) and β (zeros
+    /// without a bias); `None` for the convolutional decoders.
+    fn fourier_weights(&self) -> Option<(Vec<f32>, Vec<f32>)> {
+        let conv = self.fourier.as_ref()?;
+        let omega: Vec<f32> = conv.weight.val().try_into_vec_as::<f32>().ok()?;
+        let beta: Vec<f32> = match &conv.bias {
+            Some(b) => b.val().try_into_vec_as::<f32>().ok()?,
+            None => vec![0.0; omega.len() / 3],
+        };
+        Some((omega, beta))
+    }
+
     /// The colour-Fourier projection on the host ([`FourierHost`]: the pooled features and
     /// their gradient in one fused pass), or `None` for the convolutional decoders.
     pub fn fourier_host(&self) -> Option<super::FourierHost> {
-        let conv = self.fourier.as_ref()?;
-        let omega: Vec<f32> = conv.weight.val().try_into_vec_as::<f32>().ok()?;
-        let f = omega.len() / 3;
-        let beta: Vec<f32> = match &conv.bias {
-            Some(b) => b.val().try_into_vec_as::<f32>().ok()?,
-            None => vec![0.0; f],
-        };
+        let (omega, beta) = self.fourier_weights()?;
         Some(super::FourierHost::new(
             &omega,
             &beta,
@@ -295,13 +301,8 @@ impl HiddenDecoder {
     /// convolutional decoders (their Jacobian takes one backward pass per feature).
     pub fn band_jacobian(&self, band: &[f32], h: usize, w: usize) -> Option<Vec<f64>> {
         use rayon::prelude::*;
-        let conv = self.fourier.as_ref()?;
-        let omega: Vec<f32> = conv.weight.val().try_into_vec_as::<f32>().ok()?;
+        let (omega, beta) = self.fourier_weights()?;
         let f = omega.len() / 3;
-        let beta: Vec<f32> = match &conv.bias {
-            Some(b) => b.val().try_into_vec_as::<f32>().ok()?,
-            None => vec![0.0; f],
-        };
         let n = h * w;
         if band.len() != 3 * n || beta.len() != f {
             return None;
