@@ -13,218 +13,18 @@
 //! ∂S/∂x = Gᵀ∗g_μ + 2x·(Gᵀ∗g_xx) + t·(Gᵀ∗g_xt), where g_xx = −S/B₂, g_xt = 2A₁/(B₁B₂),
 //! g_μ = 2μ_t(A₂ − A₁)/(B₁B₂) − 2μ_x·S/B₁ + 2μ_x·S/B₂.
 //!
-//! Gᵀ is the exact transpose of the padded blur (reflection folds border weights back).
-//! Measured on donut at 512² (docs/BENCHMARKS.md, "Embedding"): the burn graph of these terms
+//! Gᵀ is the exact transpose of the padded blur (reflection folds border weights back); the
+//! three sweeps over the image that give S and ∂S/∂x are [`ssim`]'s. Measured on donut at 512² (docs/BENCHMARKS.md, "Embedding"): the burn graph of these terms
 //! and its transposed depthwise convolutions were the largest share of a step once the views
 //! were replayed.
 
-use rayon::prelude::*;
-
 use super::LossWeights;
 
-const C1: f64 = 0.01 * 0.01;
-const C2: f64 = 0.03 * 0.03;
-const SSIM_SIGMA: f64 = 1.5;
-const SSIM_TAPS: usize = 11;
-
-/// A 1D linear operator of length n as gather lists: `out[i] = Σ (j, w) ∈ rows[i]: w·x[j]`;
-/// rows `regular` (a range) are the plain kernel `kern` centred on i, applied without lists.
-struct Op1d {
-    rows: Vec<Vec<(usize, f32)>>,
-    kern: Vec<f32>,
-    regular: std::ops::Range<usize>,
-}
-
-impl Op1d {
-    fn new(rows: Vec<Vec<(usize, f32)>>, kern: Vec<f32>) -> Self {
-        let half = kern.len() / 2;
-        let is_regular = |i: usize, row: &[(usize, f32)]| {
-            row.len() == kern.len()
-                && row
-                    .iter()
-                    .enumerate()
-                    .all(|(m, &(j, w))| i + m == j + half && w == kern[m])
-        };
-        let flags: Vec<bool> = rows
-            .iter()
-            .enumerate()
-            .map(|(i, r)| is_regular(i, r))
-            .collect();
-        let lo = flags.iter().position(|&f| f).unwrap_or(0);
-        let hi = flags[lo..]
-            .iter()
-            .position(|&f| !f)
-            .map_or(flags.len(), |k| lo + k);
-        Self {
-            rows,
-            kern,
-            regular: lo..hi.max(lo),
-        }
-    }
-}
-
-impl Op1d {
-    /// The SSIM window along an axis of length n: Gaussian taps, reflect padding (edge
-    /// replication when the axis is shorter than the half window, as the burn blur does).
-    fn blur(n: usize) -> Self {
-        let half = SSIM_TAPS / 2;
-        let raw: Vec<f64> = (0..SSIM_TAPS)
-            .map(|k| {
-                let d = k as f64 - half as f64;
-                (-0.5 * (d / SSIM_SIGMA).powi(2)).exp()
-            })
-            .collect();
-        let total: f64 = raw.iter().sum();
-        let taps: Vec<f32> = raw.iter().map(|v| (v / total) as f32).collect();
-        let reflect = half < n;
-        let index = |p: isize| -> usize {
-            let last = n as isize - 1;
-            let q = if reflect {
-                if p < 0 {
-                    -p
-                } else if p > last {
-                    2 * last - p
-                } else {
-                    p
-                }
-            } else {
-                p.clamp(0, last)
-            };
-            q as usize
-        };
-        let rows = (0..n)
-            .map(|i| {
-                taps.iter()
-                    .enumerate()
-                    .map(|(k, &w)| (index(i as isize + k as isize - half as isize), w))
-                    .collect()
-            })
-            .collect();
-        Self::new(rows, taps)
-    }
-
-    /// The transpose: `out[j] = Σ_i M[i][j]·x[i]` (the kernel is symmetric, so regular rows
-    /// stay regular).
-    fn transposed(&self) -> Self {
-        let mut rows: Vec<Vec<(usize, f32)>> = vec![Vec::new(); self.rows.len()];
-        for (i, row) in self.rows.iter().enumerate() {
-            for &(j, w) in row {
-                rows[j].push((i, w));
-            }
-        }
-        Self::new(rows, self.kern.iter().rev().copied().collect())
-    }
-}
-
-/// The separable window of one image size and its transpose.
-struct Window {
-    w: usize,
-    x: Op1d,
-    y: Op1d,
-    xt: Op1d,
-    yt: Op1d,
-}
-
-impl Window {
-    fn new(w: usize, h: usize) -> Self {
-        let (x, y) = (Op1d::blur(w), Op1d::blur(h));
-        let (xt, yt) = (x.transposed(), y.transposed());
-        Self { w, x, y, xt, yt }
-    }
-
-    /// Along x, then along y (the order of the burn blur).
-    fn blur(&self, plane: &[f32]) -> Vec<f32> {
-        along_y(&self.y, &along_x(&self.x, plane, self.w), self.w)
-    }
-
-    /// The transpose of [`Window::blur`].
-    fn blur_t(&self, plane: &[f32]) -> Vec<f32> {
-        along_x(&self.xt, &along_y(&self.yt, plane, self.w), self.w)
-    }
-}
-
-fn along_x(op: &Op1d, plane: &[f32], w: usize) -> Vec<f32> {
-    let mut out = vec![0.0f32; plane.len()];
-    out.par_chunks_mut(w)
-        .zip(plane.par_chunks(w))
-        .for_each(|(o, row)| {
-            let (lo, hi) = (op.regular.start, op.regular.end);
-            let half = op.kern.len() / 2;
-            for (i, (v, taps)) in o.iter_mut().zip(&op.rows).enumerate() {
-                if !(lo..hi).contains(&i) {
-                    *v = taps.iter().map(|&(j, t)| t * row[j]).sum();
-                }
-            }
-            // Interior: tap by tap over the whole run (vectorised).
-            if lo >= hi {
-                return;
-            }
-            for (m, &t) in op.kern.iter().enumerate() {
-                for (v, &x) in o[lo..hi].iter_mut().zip(&row[lo + m - half..hi + m - half]) {
-                    *v += t * x;
-                }
-            }
-        });
-    out
-}
-
-fn along_y(op: &Op1d, plane: &[f32], w: usize) -> Vec<f32> {
-    let mut out = vec![0.0f32; plane.len()];
-    out.par_chunks_mut(w).zip(&op.rows).for_each(|(o, taps)| {
-        for &(j, t) in taps {
-            for (v, &s) in o.iter_mut().zip(&plane[j * w..(j + 1) * w]) {
-                *v += t * s;
-            }
-        }
-    });
-    out
-}
-
-/// Mean SSIM of two planes and, when asked, ∂(mean SSIM)/∂x times `scale`.
-fn ssim_plane(win: &Window, x: &[f32], t: &[f32], scale: f64) -> (f64, Vec<f32>) {
-    let n = x.len();
-    let prod = |a: &[f32], b: &[f32]| -> Vec<f32> { a.iter().zip(b).map(|(p, q)| p * q).collect() };
-    let mx = win.blur(x);
-    let mt = win.blur(t);
-    let exx = win.blur(&prod(x, x));
-    let ett = win.blur(&prod(t, t));
-    let ext = win.blur(&prod(x, t));
-    let mut g_mu = vec![0.0f32; n];
-    let mut g_xx = vec![0.0f32; n];
-    let mut g_xt = vec![0.0f32; n];
-    let sum: f64 = (0..n)
-        .into_par_iter()
-        .zip(g_mu.par_iter_mut())
-        .zip(g_xx.par_iter_mut())
-        .zip(g_xt.par_iter_mut())
-        .map(|(((i, gm), gx), gt)| {
-            let (ux, ut) = (f64::from(mx[i]), f64::from(mt[i]));
-            let sxx = f64::from(exx[i]) - ux * ux;
-            let stt = f64::from(ett[i]) - ut * ut;
-            let sxt = f64::from(ext[i]) - ux * ut;
-            let a1 = 2.0 * ux * ut + C1;
-            let a2 = 2.0 * sxt + C2;
-            let b1 = ux * ux + ut * ut + C1;
-            let b2 = sxx + stt + C2;
-            let s = a1 * a2 / (b1 * b2);
-            *gm = (scale
-                * (2.0 * ut * (a2 - a1) / (b1 * b2) - 2.0 * ux * s / b1 + 2.0 * ux * s / b2))
-                as f32;
-            *gx = (scale * (-s / b2)) as f32;
-            *gt = (scale * 2.0 * a1 / (b1 * b2)) as f32;
-            s
-        })
-        .sum();
-    let (bm, bx, bt) = (win.blur_t(&g_mu), win.blur_t(&g_xx), win.blur_t(&g_xt));
-    let grad = (0..n)
-        .map(|i| bm[i] + 2.0 * x[i] * bx[i] + t[i] * bt[i])
-        .collect();
-    (sum / n as f64, grad)
-}
+mod ssim;
 
 /// Σ over the Haar detail bands of every level of mean|band(x) − band(t)| (each band's mean
 /// over its own elements, `planes` planes of h×w sharing the count), and its gradient times
-/// `scale`.
+/// `scale`. The bands in f32 (as burn's), their sum in f64.
 fn high_bands_l1(
     x: &[f32],
     t: &[f32],
@@ -236,49 +36,63 @@ fn high_bands_l1(
 ) -> (f64, Vec<f32>) {
     let m = 1usize << levels;
     let (pw, ph) = (w.div_ceil(m) * m, h.div_ceil(m) * m);
-    let pad = |p: &[f32]| -> Vec<f64> {
-        (0..ph * pw)
-            .map(|k| f64::from(p[(k / pw).min(h - 1) * w + (k % pw).min(w - 1)]))
-            .collect()
+    let pad = |p: &[f32]| -> Vec<f32> {
+        let mut out = vec![0.0f32; pw * ph];
+        for (r, dst) in out.chunks_exact_mut(pw).enumerate() {
+            let src = &p[r.min(h - 1) * w..(r.min(h - 1) + 1) * w];
+            dst[..w].copy_from_slice(src);
+            dst[w..].fill(src[w - 1]);
+        }
+        out
     };
     // Per level: the LL of x and t it starts from, to rebuild the gradient coarse to fine.
     let (mut lx, mut lt) = (pad(x), pad(t));
     let (mut cw, mut ch) = (pw, ph);
     let mut value = 0.0;
-    let mut d_bands: Vec<[Vec<f64>; 3]> = Vec::with_capacity(levels);
+    let mut d_bands: Vec<[Vec<f32>; 3]> = Vec::with_capacity(levels);
     let mut sizes = Vec::with_capacity(levels);
     for _ in 0..levels {
         let (hw, hh) = (cw / 2, ch / 2);
         let count = (planes * hw * hh) as f64;
-        let mut next = (vec![0.0; hw * hh], vec![0.0; hw * hh]);
-        let mut d: [Vec<f64>; 3] = std::array::from_fn(|_| vec![0.0; hw * hh]);
+        let step = (scale / count) as f32;
+        let mut next = (vec![0.0f32; hw * hh], vec![0.0f32; hw * hh]);
+        let mut d: [Vec<f32>; 3] = std::array::from_fn(|_| vec![0.0f32; hw * hh]);
+        let mut sum = 0.0f64;
         for by in 0..hh {
+            let pair = 2 * by * cw..(2 * by + 2) * cw;
+            let ((x0, x1), (t0, t1)) = (lx[pair.clone()].split_at(cw), lt[pair].split_at(cw));
+            let mut row_sum = 0.0f32;
             for bx in 0..hw {
                 let q = by * hw + bx;
-                let bands = |p: &[f64]| {
-                    let (a, b) = (p[2 * by * cw + 2 * bx], p[2 * by * cw + 2 * bx + 1]);
-                    let (c, e) = (
-                        p[(2 * by + 1) * cw + 2 * bx],
-                        p[(2 * by + 1) * cw + 2 * bx + 1],
-                    );
+                // ll, [lh, hl, hh] as in `haar_level`
+                let bands = |top: &[f32], bottom: &[f32]| {
+                    let (a, b) = (top[2 * bx], top[2 * bx + 1]);
+                    let (c, e) = (bottom[2 * bx], bottom[2 * bx + 1]);
                     let (s0, s1, d0, d1) = (a + c, b + e, a - c, b - e);
-                    // ll, [lh, hl, hh] as in `haar_level`
                     (
                         0.5 * (s0 + s1),
                         [0.5 * (d0 + d1), 0.5 * (s0 - s1), 0.5 * (d0 - d1)],
                     )
                 };
-                let (llx, hx) = bands(&lx);
-                let (llt, ht) = bands(&lt);
+                let (llx, hx) = bands(x0, x1);
+                let (llt, ht) = bands(t0, t1);
                 next.0[q] = llx;
                 next.1[q] = llt;
                 for k in 0..3 {
                     let diff = hx[k] - ht[k];
-                    value += diff.abs() / count;
-                    d[k][q] = scale * sign(diff) / count;
+                    row_sum += diff.abs();
+                    d[k][q] = if diff > 0.0 {
+                        step
+                    } else if diff < 0.0 {
+                        -step
+                    } else {
+                        0.0
+                    };
                 }
             }
+            sum += f64::from(row_sum);
         }
+        value += sum / count;
         d_bands.push(d);
         sizes.push((cw, ch));
         (lx, lt) = next;
@@ -286,30 +100,31 @@ fn high_bands_l1(
     }
     // Back through the levels, coarsest first: the LL gradient of level l+1's input is the
     // gradient of level l's LL output (zero at the coarsest: the LL band is not in this term).
-    let mut d_ll = vec![0.0f64; cw * ch];
+    let mut d_ll = vec![0.0f32; cw * ch];
     for (d, &(cw, ch)) in d_bands.iter().zip(&sizes).rev() {
         let hw = cw / 2;
-        let mut up = vec![0.0f64; cw * ch];
+        let mut up = vec![0.0f32; cw * ch];
         for by in 0..ch / 2 {
+            let (top, bottom) = up[2 * by * cw..(2 * by + 2) * cw].split_at_mut(cw);
             for bx in 0..hw {
                 let q = by * hw + bx;
                 let (gll, glh, ghl, ghh) = (d_ll[q], d[0][q], d[1][q], d[2][q]);
-                up[2 * by * cw + 2 * bx] = 0.5 * (gll + ghl + glh + ghh);
-                up[2 * by * cw + 2 * bx + 1] = 0.5 * (gll - ghl + glh - ghh);
-                up[(2 * by + 1) * cw + 2 * bx] = 0.5 * (gll + ghl - glh - ghh);
-                up[(2 * by + 1) * cw + 2 * bx + 1] = 0.5 * (gll - ghl - glh + ghh);
+                top[2 * bx] = 0.5 * (gll + ghl + glh + ghh);
+                top[2 * bx + 1] = 0.5 * (gll - ghl + glh - ghh);
+                bottom[2 * bx] = 0.5 * (gll + ghl - glh - ghh);
+                bottom[2 * bx + 1] = 0.5 * (gll - ghl - glh + ghh);
             }
         }
         d_ll = up;
     }
     // Fold the padding back onto the edge pixels it replicated.
     let mut grad = vec![0.0f32; w * h];
-    let mut acc = vec![0.0f64; w * h];
-    for (k, g) in d_ll.iter().enumerate() {
-        acc[(k / pw).min(h - 1) * w + (k % pw).min(w - 1)] += g;
-    }
-    for (o, a) in grad.iter_mut().zip(acc) {
-        *o = a as f32;
+    for (r, src) in d_ll.chunks_exact(pw).enumerate() {
+        let dst = &mut grad[r.min(h - 1) * w..(r.min(h - 1) + 1) * w];
+        for (o, g) in dst.iter_mut().zip(src) {
+            *o += g;
+        }
+        dst[w - 1] += src[w..].iter().sum::<f32>();
     }
     (value, grad)
 }
@@ -372,7 +187,6 @@ fn image_loss(
         y.len() == n && t.len() == n,
         "render and target are {w}×{h}"
     );
-    let win = Window::new(w, h);
     let count = (3 * n) as f64;
     let per_channel: Vec<(f64, Vec<f32>)> = (0..3)
         .map(|c| {
@@ -396,7 +210,7 @@ fn image_loss(
                     .collect();
                 (l1 / count, g)
             };
-            let (s, gs) = ssim_plane(&win, &x, &tc, -f64::from(weights.dssim) / 3.0 / n as f64);
+            let (s, gs) = ssim::ssim_plane(&x, &tc, w, h, -weights.dssim / 3.0 / n as f32);
             let (hb, gh) = if levels > 0 {
                 high_bands_l1(&x, &tc, w, h, levels, 3, f64::from(weights.wav_high))
             } else {
@@ -464,6 +278,38 @@ mod tests {
                 std::array::from_fn(|_| smooth + spread * (next() - 0.5))
             })
             .collect()
+    }
+
+    #[test]
+    fn the_visual_loss_does_not_depend_on_the_thread_count() {
+        let weights = LossWeights {
+            rec: 0.8,
+            dssim: 0.2,
+            wav_high: 0.5,
+            ..LossWeights::default()
+        };
+        let (w, h) = (70, 45);
+        let y = image(w, h, 5, 0.9);
+        let t: Vec<[f32; 3]> = image(w, h, 6, 0.2)
+            .into_iter()
+            .map(|p| p.map(|v| v.clamp(0.0, 1.0)))
+            .collect();
+        let on = |threads: usize| {
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .expect("a thread pool")
+                .install(|| visual_loss(&y, &t, w, h, &weights, 2))
+        };
+        let (v1, g1) = on(1);
+        let (v4, g4) = on(4);
+        assert_eq!(v1.to_bits(), v4.to_bits());
+        assert!(
+            g1.iter()
+                .flatten()
+                .zip(g4.iter().flatten())
+                .all(|(a, b)| a.to_bits() == b.to_bits())
+        );
     }
 
     #[test]
