@@ -280,20 +280,30 @@ mod tests {
             .collect()
     }
 
-    #[test]
-    fn the_visual_loss_does_not_depend_on_the_thread_count() {
-        let weights = LossWeights {
+    /// A target: a smooth image with a little noise, inside [0, 1].
+    fn target(w: usize, h: usize, seed: u64) -> Vec<[f32; 3]> {
+        image(w, h, seed, 0.2)
+            .into_iter()
+            .map(|p| p.map(|v| v.clamp(0.0, 1.0)))
+            .collect()
+    }
+
+    /// Weights that give every term of L_vis a say.
+    fn every_term() -> LossWeights {
+        LossWeights {
             rec: 0.8,
             dssim: 0.2,
             wav_high: 0.5,
             ..LossWeights::default()
-        };
+        }
+    }
+
+    #[test]
+    fn the_visual_loss_does_not_depend_on_the_thread_count() {
+        let weights = every_term();
         let (w, h) = (70, 45);
         let y = image(w, h, 5, 0.9);
-        let t: Vec<[f32; 3]> = image(w, h, 6, 0.2)
-            .into_iter()
-            .map(|p| p.map(|v| v.clamp(0.0, 1.0)))
-            .collect();
+        let t = target(w, h, 6);
         let on = |threads: usize| {
             rayon::ThreadPoolBuilder::new()
                 .num_threads(threads)
@@ -314,21 +324,13 @@ mod tests {
 
     #[test]
     fn the_closed_form_visual_loss_and_gradient_are_burns() {
-        let weights = LossWeights {
-            rec: 0.8,
-            dssim: 0.2,
-            wav_high: 0.5,
-            ..LossWeights::default()
-        };
+        let weights = every_term();
         // Even sizes, odd sizes (edge padding of the DWT), and an axis shorter than the half
         // window (edge padding of the blur); renders stray outside [0, 1] and some pixels equal
         // their target (L1's kink) or sit exactly on 0 (the clamp's edge).
         for (w, h, levels) in [(40, 28, 2), (23, 13, 2), (4, 17, 1), (24, 16, 0)] {
             let mut y = image(w, h, 1 + w as u64, 0.9);
-            let t: Vec<[f32; 3]> = image(w, h, 99 + h as u64, 0.2)
-                .into_iter()
-                .map(|p| p.map(|v| v.clamp(0.0, 1.0)))
-                .collect();
+            let t = target(w, h, 99 + h as u64);
             y[3] = t[3];
             y[5] = [0.0; 3];
             let (v, g) = visual_loss(&y, &t, w, h, &weights, levels);
