@@ -58,6 +58,7 @@ pub use geometry::perspective_source;
 pub(crate) use geometry::resize;
 pub use jpeg::{JPEG_CHROMA_TABLE, JPEG_LUMA_TABLE, jpeg_quant_table, straight_through_round};
 pub use photometric::gaussian_blur;
+pub(crate) use photometric::gaussian_kernel;
 
 use burn::tensor::{Device, Tensor, TensorData};
 use serde::{Deserialize, Serialize};

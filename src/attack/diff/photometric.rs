@@ -26,7 +26,7 @@ pub(super) fn noise(x: Tensor<4>, sigma: f32, seed: u64) -> Tensor<4> {
 }
 
 /// Normalised 1D Gaussian kernel sampled at integer offsets −k/2..=k/2 (torchvision's).
-fn gaussian_kernel(sigma: f32, kernel: u32) -> Vec<f32> {
+pub(crate) fn gaussian_kernel(sigma: f32, kernel: u32) -> Vec<f32> {
     let half = i64::from(kernel / 2);
     let sigma = f64::from(sigma);
     let weights: Vec<f64> = (-half..=half)

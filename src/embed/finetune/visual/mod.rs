@@ -14,9 +14,9 @@
 //! g_μ = 2μ_t(A₂ − A₁)/(B₁B₂) − 2μ_x·S/B₁ + 2μ_x·S/B₂.
 //!
 //! Gᵀ is the exact transpose of the padded blur (reflection folds border weights back); the
-//! three sweeps over the image that give S and ∂S/∂x are [`ssim`]'s. Measured on donut at 512² (docs/BENCHMARKS.md, "Embedding"): the burn graph of these terms
-//! and its transposed depthwise convolutions were the largest share of a step once the views
-//! were replayed.
+//! three sweeps over the image that give S and ∂S/∂x are [`ssim`]'s. Measured on donut at 512²
+//! (docs/BENCHMARKS.md, "Embedding"): the burn graph of these terms and its transposed
+//! depthwise convolutions were the largest share of a step once the views were replayed.
 
 use super::LossWeights;
 

@@ -15,22 +15,20 @@
 
 use rayon::prelude::*;
 
+use crate::attack::diff::gaussian_kernel;
+
 const C1: f32 = 0.01 * 0.01;
 const C2: f32 = 0.03 * 0.03;
-const SIGMA: f64 = 1.5;
+const SIGMA: f32 = 1.5;
 const TAPS: usize = 11;
 const HALF: usize = TAPS / 2;
 /// Columns a register accumulator holds.
 const LANES: usize = 8;
 
-/// The Gaussian window's taps (normalised; symmetric to the last bit).
+/// The Gaussian window's taps: the burn SSIM's own kernel (symmetric to the last bit).
 fn taps() -> [f32; TAPS] {
-    let raw: [f64; TAPS] = std::array::from_fn(|k| {
-        let d = k as f64 - HALF as f64;
-        (-0.5 * (d / SIGMA).powi(2)).exp()
-    });
-    let total: f64 = raw.iter().sum();
-    raw.map(|v| (v / total) as f32)
+    let k = gaussian_kernel(SIGMA, TAPS as u32);
+    std::array::from_fn(|m| k[m])
 }
 
 /// The pixel that padded position `p` (−HALF ≤ p < n + HALF) of an axis of `n` reads: reflect
