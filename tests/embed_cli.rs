@@ -243,6 +243,35 @@ fn a_reference_is_reported_and_verify_reads_it() {
         v["view_projection"]["head"].as_array().map(Vec::len),
         Some(32 * 128)
     );
+    // The report names the decoder the bits were written for (the shipped one); other weights
+    // — here the same weights with another sidecar — are refused, not read as noise.
+    let shipped = v["decoder"].as_str().expect("decoder digest");
+    assert_eq!(shipped.len(), 64);
+    let (dec, _, sidecar) = splatmark::decoder::artifact::shipped_bytes(32).unwrap();
+    assert_eq!(
+        shipped,
+        splatmark::decoder::artifact::digest_of(dec, sidecar)
+    );
+    let mut json: serde_json::Value = serde_json::from_slice(sidecar).unwrap();
+    json["note"] = "another decoder".into();
+    let other = dir.path().join("other.bpk");
+    std::fs::write(&other, dec).unwrap();
+    std::fs::write(other.with_extension("json"), json.to_string()).unwrap();
+    let bad = bin()
+        .arg("verify")
+        .args(&png)
+        .args(["--message", "c0ffee42", "--weights"])
+        .arg(&other)
+        .arg("--report")
+        .arg(&report)
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(
+        err.contains(&format!("written for decoder {}", &shipped[..12])),
+        "{err}"
+    );
     // Plain decoding on request: no reference measured or reported.
     let v = ok_json(
         &bin()

@@ -21,6 +21,19 @@ use splatmark::verify::message::parse_hex;
 mod common;
 use common::*;
 
+/// Writes the shipped 32-bit decoder as `dir/name.bpk` with a sidecar that carries `note` (the
+/// same weights; another file, so another decoder digest) and returns that digest.
+fn shipped_decoder_copy(dir: &Path, name: &str, note: &str) -> String {
+    let (decoder, _, sidecar) = splatmark::decoder::artifact::shipped_bytes(32).unwrap();
+    let mut json: Value = serde_json::from_slice(sidecar).unwrap();
+    json["note"] = note.into();
+    let sidecar = serde_json::to_vec_pretty(&json).unwrap();
+    std::fs::create_dir_all(dir).unwrap();
+    std::fs::write(dir.join(format!("{name}.bpk")), decoder).unwrap();
+    std::fs::write(dir.join(format!("{name}.json")), &sidecar).unwrap();
+    splatmark::decoder::artifact::digest_of(decoder, &sidecar)
+}
+
 /// A job that runs until it is stopped: the most steps a job may ask for (its schedule may
 /// stretch to twice them, `finetune.stretch_bce`).
 const LONG_JOB_STEPS: usize = splatmark::queue::spec::MAX_STEPS / 2;
@@ -33,7 +46,15 @@ async fn upload_watermark_download_render_verify_round_trip() {
     // bits four times, even with the 300 extra steps); how well the pipeline embeds is measured
     // on real scenes (the donut test below, on views the job never saw, and docs/RESULTS.md).
     // This test is about the service around the pipeline.
-    let mut t = TestApp::start_with(|c| c.fpr = 1e-3).await;
+    // The server's 32-bit decoder is one in its weights folder (the shipped one, its sidecar
+    // noted): an operator's own, which a later upgrade replaces (checked at the end).
+    let weights = tempfile::tempdir().unwrap();
+    let ours = shipped_decoder_copy(weights.path(), "decoder-32", "ours");
+    let mut t = TestApp::start_with(|c| {
+        c.fpr = 1e-3;
+        c.weights_dir = Some(weights.path().to_path_buf());
+    })
+    .await;
     let k = t.keys().await;
     let original = object_scene(1500, 1, 4);
     let r = t.upload(&k.owner, "object.ply", ply_bytes(&original)).await;
@@ -137,6 +158,35 @@ async fn upload_watermark_download_render_verify_round_trip() {
     let v0 = t.verify(&k.verifier, &plain, Some(&marked_id)).await;
     assert_eq!(v0["decoded"]["32"], message, "{v0}");
     assert_eq!(v0["detected"], false, "{v0}");
+
+    // The bits were written for the weights folder's decoder; the report and the dispute say so.
+    assert_eq!(meta["report"]["decoder"], ours.as_str(), "{meta}");
+    assert_eq!(v["best"]["decoder"], ours.as_str(), "{v}");
+    // An upgrade replaces that decoder: the key names the one the bits were written for, which
+    // the server no longer holds — a 409 that names it, not a false "not detected".
+    let theirs = shipped_decoder_copy(weights.path(), "decoder-32", "upgraded");
+    assert_ne!(theirs, ours);
+    let r = t
+        .verify_response(&k.verifier, &imgs, Some(&marked_id))
+        .await;
+    let p = assert_problem(r, StatusCode::CONFLICT).await;
+    assert!(p["detail"].as_str().unwrap().contains(&ours[..12]), "{p}");
+    // Kept in the weights folder's archive, it reads the asset again; the current decoder's
+    // bits are still shown under the length, the archived one's under `length@digest`.
+    let archived = shipped_decoder_copy(&weights.path().join("archive"), "2026-12", "ours");
+    assert_eq!(archived, ours);
+    let again = t.verify(&k.verifier, &imgs, Some(&marked_id)).await;
+    assert_eq!(again["detected"], true, "{again}");
+    assert_eq!(again["best"]["decoder"], ours.as_str(), "{again}");
+    assert_eq!(again["best"]["matches"], v["best"]["matches"], "{again}");
+    assert!(
+        again["decoded"][format!("32@{}", &ours[..12])].is_string(),
+        "{again}"
+    );
+    // Without an asset id the candidate is tested with its decoder too.
+    let any = t.verify(&k.verifier, &imgs, None).await;
+    assert_eq!(any["detected"], true, "{any}");
+    assert_eq!(any["untestable"]["count"], 0, "{any}");
 
     // Attribution: one record per Gaussian, carriers as the summary says.
     let sum: Value = t
@@ -352,8 +402,7 @@ async fn a_result_is_published_once_when_a_worker_dies_mid_job() {
                 cameras_format: None,
             },
             &dead.key,
-            None,
-            None,
+            &splatmark::store::Readout::default(),
             &[],
             json!({}),
             splatmark::store::AuditEntry {

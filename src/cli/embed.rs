@@ -386,7 +386,7 @@ fn report_progress(bar: &mut Progress, p: &crate::embed::pipeline::Progress, eve
 
 /// `model` decoding relative to the asset when `report` (an embedding report) carries reference
 /// logits (and through its view projection when it carries one); unchanged without a report or
-/// without either in it.
+/// without either in it. An error when the report names another decoder than `model`.
 pub(crate) fn with_report_reference(
     model: WatermarkModel,
     report: Option<&Path>,
@@ -421,6 +421,19 @@ pub(crate) fn with_report_reference(
         Some(v) => model.with_projection(v),
         None => model,
     };
+    // The bits were written for one decoder; another reads them as noise.
+    if let Some(d) = r.get("decoder").and_then(|d| d.as_str())
+        && d != model.digest()
+    {
+        let ours = model.digest();
+        bail!(
+            "{}: the watermark was written for decoder {}…, these weights are decoder {}… \
+             (pass the weights it was embedded with: --weights FILE)",
+            p.display(),
+            crate::decoder::artifact::short_digest(d),
+            crate::decoder::artifact::short_digest(&ours)
+        );
+    }
     Ok(match reference {
         Some(z) if z.len() != model.bits() => bail!(
             "{}: reference for {} bits, the message has {}",

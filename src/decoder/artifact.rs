@@ -477,12 +477,48 @@ pub struct WatermarkModel {
     /// The per-asset view projection ([`with_projection`](Self::with_projection)), applied to
     /// the pooled features before the head. `None` for the plain decoder.
     pub projection: Option<ViewProjection>,
+    /// [`digest_of`] the files the model was loaded from; `None` for a model made in memory
+    /// ([`digest`](Self::digest) then hashes what [`save`](Self::save) would write).
+    pub file_digest: Option<String>,
+}
+
+/// The identity of a decoder artifact: SHA-256 (hex) of its decoder weights and its sidecar,
+/// each length-prefixed — the two files that decide what an image decodes to (the encoder does
+/// not). A watermark's key records it, so that a dispute reads the bits with the decoder that
+/// wrote them (`decoder::registry`).
+pub fn digest_of(decoder: &[u8], sidecar: &[u8]) -> String {
+    use sha2::{Digest, Sha256};
+    let mut h = Sha256::new();
+    h.update(b"splatmark-decoder-digest/1\0");
+    for part in [decoder, sidecar] {
+        h.update((part.len() as u64).to_le_bytes());
+        h.update(part);
+    }
+    hex::encode(h.finalize())
+}
+
+/// The first 12 hex digits of a digest, for messages.
+pub fn short_digest(digest: &str) -> &str {
+    digest.get(..12).unwrap_or(digest)
 }
 
 impl WatermarkModel {
     /// Message length.
     pub fn bits(&self) -> usize {
         self.sidecar.bits
+    }
+
+    /// The decoder's identity ([`digest_of`]): of the files it was loaded from, or for a model
+    /// made in memory of the bytes [`save`](Self::save) would write.
+    pub fn digest(&self) -> String {
+        match &self.file_digest {
+            Some(d) => d.clone(),
+            None => {
+                let dec = to_burnpack(self.decoder.clone()).expect("weights serialise");
+                let json = serde_json::to_vec_pretty(&self.sidecar).expect("sidecar serialises");
+                digest_of(&dec, &json)
+            }
+        }
     }
 
     /// The device the decoder's weights live on (without its autodiff setting): tensors fed to
@@ -515,6 +551,7 @@ impl WatermarkModel {
         origin: &Path,
         device: &Device,
     ) -> Result<Self, WeightsError> {
+        let file_digest = Some(digest_of(decoder, sidecar));
         let sidecar: Sidecar =
             serde_json::from_slice(sidecar).map_err(|source| WeightsError::Json {
                 path: sidecar_path(origin),
@@ -544,6 +581,7 @@ impl WatermarkModel {
             encoder: enc,
             reference: None,
             projection: None,
+            file_digest,
         })
     }
 

@@ -28,6 +28,8 @@
 //!   (`splatmark decoder train-opt`), GroupNorm decoder, unmarked logits pulled to 0.
 //! - [`artifact`]: the artifact files (decoder + encoder burnpacks, JSON sidecar) and the
 //!   weights shipped in the binary (`weights/decoder-{32,48,64}.*`).
+//! - [`registry`]: which decoder reads an asset's bits — found by the digest its key records
+//!   among the current, shipped and archived decoders.
 //!
 //! Typical finetuning use (`embed::finetune`, planned): build the decoder from its config, load
 //! the pretrained weights, [`HiddenDecoder::frozen`], then per view
@@ -45,6 +47,7 @@ pub mod model;
 pub mod optrain;
 pub mod probe;
 pub mod projection;
+pub mod registry;
 pub mod train;
 
 pub use dwt::{Dwt, dwt, haar_level, idwt, inverse_haar_level, ll_band, ll_size, padded_size};

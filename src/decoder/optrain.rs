@@ -603,6 +603,7 @@ impl OptTrainer {
             encoder: None,
             reference: None,
             projection: None,
+            file_digest: None,
         })
     }
 }

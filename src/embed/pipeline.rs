@@ -268,6 +268,10 @@ pub struct Timings {
 pub struct EmbedReport {
     pub message_hex: String,
     pub bits: usize,
+    /// The decoder the bits were written for ([`WatermarkModel::digest`]): a dispute must read
+    /// them with the same one (the service registers it with the key; `splatmark verify
+    /// --report` checks it).
+    pub decoder: String,
     pub views: usize,
     /// Cameras interpolated along the training cameras' path ([`EmbedOptions::path`]).
     pub path_views: usize,
@@ -520,6 +524,7 @@ pub fn embed(
         options: opts.clone(),
         reference_logits: reference,
         view_projection: projection,
+        decoder: model.digest(),
     };
     let _ = progress(Progress {
         phase: Phase::Done,

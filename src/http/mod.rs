@@ -32,7 +32,8 @@ use tower_http::trace::TraceLayer;
 
 use crate::config::Config;
 use crate::decoder::WatermarkModel;
-use crate::queue::{PoolStatus, weights_path};
+use crate::decoder::registry::Located;
+use crate::queue::PoolStatus;
 use crate::store::Store;
 
 /// What every handler can reach.
@@ -79,12 +80,13 @@ pub(crate) async fn admit_many(
     }
 }
 
-/// Frozen decoders for verification (CPU, loaded on first use): a small pool per message
-/// length, so concurrent verifications decode in parallel (at most `verify_concurrency` at once,
-/// see [`AppState::verify_slots`]) instead of queueing behind one lock.
+/// Frozen decoders for verification (CPU, loaded on first use): a small pool per decoder
+/// (by digest, `decoder::registry`), so concurrent verifications decode in parallel (at most
+/// `verify_concurrency` at once, see [`AppState::verify_slots`]) instead of queueing behind one
+/// lock, and assets marked with an earlier decoder are read with theirs.
 pub struct Decoders {
     device: Device,
-    idle: Mutex<HashMap<usize, Vec<WatermarkModel>>>,
+    idle: Mutex<HashMap<String, Vec<WatermarkModel>>>,
 }
 
 impl Decoders {
@@ -95,31 +97,29 @@ impl Decoders {
         }
     }
 
-    /// Runs `f` with a decoder for `bits` taken from the pool (or loaded), and puts it back
-    /// (blocking: call from a blocking thread). The pool's lock is held only to take and return.
+    /// Runs `f` with the decoder `located` names, taken from the pool (or loaded), and puts it
+    /// back (blocking: call from a blocking thread). The pool's lock is held only to take and
+    /// return.
     pub fn with<T>(
         &self,
-        cfg: &Config,
-        bits: usize,
+        located: &Located,
         f: impl FnOnce(&WatermarkModel, &Device) -> T,
     ) -> Result<T, crate::decoder::artifact::WeightsError> {
         let taken = self
             .idle
             .lock()
             .unwrap_or_else(|p| p.into_inner())
-            .get_mut(&bits)
+            .get_mut(&located.digest)
             .and_then(Vec::pop);
         let m = match taken {
             Some(m) => m,
-            None => {
-                WatermarkModel::resolve(weights_path(cfg, bits).as_deref(), bits, &self.device)?
-            }
+            None => located.load(&self.device)?,
         };
         let out = f(&m, &self.device);
         self.idle
             .lock()
             .unwrap_or_else(|p| p.into_inner())
-            .entry(bits)
+            .entry(located.digest.clone())
             .or_default()
             .push(m);
         Ok(out)

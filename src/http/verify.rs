@@ -1,9 +1,11 @@
 //! `POST /v1/verify` — a dispute: rendered images (PNG/JPEG, multipart field `image`, repeated)
-//! and optionally `asset_id`. The images are decoded once per message length (logits and pooled
+//! and optionally `asset_id`. The images are decoded once per decoder (logits and pooled
 //! features averaged over the images) and tested against the asset's message — or, without an
-//! asset id, against every registered message — each read through its asset's matched head and
-//! relative to its asset reference when the job registered them, with p-values corrected for the
-//! number of candidates.
+//! asset id, against every registered message — each read with the decoder its key names
+//! (`decoder::registry`), through its asset's matched head and relative to its asset reference
+//! when the job registered them, with p-values corrected for the number of candidates tested.
+//! A registration whose decoder the server does not hold is not tested but listed
+//! (`untestable`); when it is the only one, the answer is 409.
 
 use std::collections::BTreeMap;
 use std::sync::atomic::Ordering;
@@ -19,9 +21,11 @@ use super::AppState;
 use super::assets::{multipart_err, next_chunk, next_field};
 use super::auth::Caller;
 use super::error::{ApiError, ApiResult};
+use crate::decoder::artifact::short_digest;
 use crate::decoder::eval::decode_images;
+use crate::decoder::registry::{self, Located};
 use crate::store::{AssetKind, AuditEntry, NewVerification, Registration, Scope};
-use crate::verify::dispute::{Candidate, Decoded, decoded_hex, judge};
+use crate::verify::dispute::{Candidate, Decoded, judge};
 
 /// Largest image file accepted for verification.
 const MAX_IMAGE_BYTES: usize = 64 << 20;
@@ -106,15 +110,39 @@ pub fn decode_image(bytes: &[u8], i: usize, max_side: u32) -> ApiResult<image::R
     Ok(img)
 }
 
-/// What the images are tested against for a registration: its payload, matched head and
-/// reference.
-fn candidate(r: Registration) -> Candidate {
+/// What the images are tested against for a registration: its payload, matched head,
+/// reference, and the decoder `located` that reads its bits.
+fn candidate(r: Registration, located: &Located) -> Candidate {
     Candidate {
         asset_id: r.asset_id,
         payload: r.key.payload(),
         reference: r.reference,
         head: r.head,
+        decoder: located.digest.clone(),
     }
+}
+
+/// The decoder that reads a registration's bits: the one its key names, or — for a key
+/// registered before keys named one — the server's current decoder for its length. `None`
+/// when the server holds no decoder with the named digest (`decoder::registry`).
+fn locate(r: &Registration, weights_dir: Option<&std::path::Path>) -> ApiResult<Option<Located>> {
+    let bits = r.key.bits();
+    match &r.decoder {
+        Some(d) => registry::find(weights_dir, bits, d).map_err(ApiError::internal),
+        None => registry::current(weights_dir, bits)
+            .map(Some)
+            .map_err(ApiError::internal),
+    }
+}
+
+/// The registrations whose decoder this server does not hold, for the response.
+fn untestable_json(missing: &[(Uuid, String)]) -> serde_json::Value {
+    let listed: Vec<_> = missing
+        .iter()
+        .take(LIST)
+        .map(|(id, d)| json!({"asset_id": id, "decoder": d}))
+        .collect();
+    json!({"count": missing.len(), "listed": listed})
 }
 
 /// `POST /v1/verify`.
@@ -189,7 +217,7 @@ pub async fn verify(
             "no registered watermark for this asset id (unknown, or no finished watermarking job)",
         )
     };
-    let candidates: Vec<Candidate> = match asset_id {
+    let registrations: Vec<Registration> = match asset_id {
         Some(id) => {
             let a = st.store.get_asset(id).await?.ok_or_else(unregistered)?;
             let ids = match a.kind {
@@ -202,31 +230,19 @@ pub async fn verify(
                     .map(|w| w.id)
                     .collect(),
             };
-            let mut c = vec![];
+            let mut r = vec![];
             for id in ids {
-                if let Some(r) = st.store.registration(id).await? {
-                    c.push(candidate(r));
+                if let Some(reg) = st.store.registration(id).await? {
+                    r.push(reg);
                 }
             }
-            if c.is_empty() {
+            if r.is_empty() {
                 return Err(unregistered());
             }
-            c
+            r
         }
-        None => st
-            .store
-            .registrations()
-            .await?
-            .into_iter()
-            .map(candidate)
-            .collect(),
+        None => st.store.registrations().await?,
     };
-    let mut lengths: Vec<usize> = candidates.iter().map(|c| c.payload.len()).collect();
-    lengths.sort_unstable();
-    lengths.dedup();
-    if lengths.is_empty() {
-        lengths.push(32);
-    }
     let max_side = st.cfg.max_image_side;
     let decoders = st.decoders.clone();
     let cfg = st.cfg.clone();
@@ -238,40 +254,89 @@ pub async fn verify(
     .await?;
     let decoded = tokio::task::spawn_blocking(move || {
         let _permit = permit; // held until the decoding ends
+        let weights_dir = cfg.weights_dir.as_deref();
+        // Each registration's decoder; those this server does not hold are set aside.
+        let mut candidates = vec![];
+        let mut missing = vec![];
+        let mut used: BTreeMap<String, Located> = BTreeMap::new();
+        // Looked up once per (length, digest): a dispute without an asset id reads every key.
+        let mut found: BTreeMap<(usize, Option<String>), Option<Located>> = BTreeMap::new();
+        for r in registrations {
+            let k = (r.key.bits(), r.decoder.clone());
+            let l = match found.get(&k) {
+                Some(l) => l.clone(),
+                None => {
+                    let l = locate(&r, weights_dir)?;
+                    found.insert(k, l.clone());
+                    l
+                }
+            };
+            match l {
+                Some(l) => {
+                    candidates.push(candidate(r, &l));
+                    used.entry(l.digest.clone()).or_insert(l);
+                }
+                None => missing.push((r.asset_id, r.decoder.unwrap_or_default())),
+            }
+        }
+        if candidates.is_empty() && !missing.is_empty() {
+            let d = &missing[0].1;
+            return Err(ApiError::conflict(format!(
+                "the watermark was written with decoder {}…, which this server does not hold; \
+                 the operator can restore it by putting that decoder's files in the weights \
+                 folder's archive/ (weights/README.md)",
+                short_digest(d)
+            )));
+        }
+        // Without candidates the images are still decoded (32 bits), for the response.
+        if used.is_empty() {
+            let l = registry::current(weights_dir, 32).map_err(ApiError::internal)?;
+            used.insert(l.digest.clone(), l);
+        }
         let imgs = images
             .iter()
             .enumerate()
             .map(|(i, b)| decode_image(b, i, max_side))
             .collect::<ApiResult<Vec<_>>>()?;
         let mut out = BTreeMap::new();
-        let mut logits = BTreeMap::new();
-        for n in lengths {
+        let mut detail = serde_json::Map::new();
+        let mut plain = serde_json::Map::new();
+        for (digest, l) in &used {
             let r = decoders
-                .with(&cfg, n, |m, d| decode_images(m, &imgs, d))
+                .with(l, |m, d| decode_images(m, &imgs, d))
                 .map_err(ApiError::internal)?;
-            logits.insert(
-                n,
-                json!({"confidence": r.confidence, "per_image": r.per_image}),
+            let d = Decoded {
+                logits: r.logits,
+                features: r.features,
+            };
+            let hex = d.plain_hex();
+            // Keyed by length for the server's current decoders (what a new job would write
+            // for), by `length@digest` for older ones.
+            let current = registry::current(weights_dir, l.bits).is_ok_and(|c| c.digest == *digest);
+            let key = if current {
+                l.bits.to_string()
+            } else {
+                format!("{}@{}", l.bits, short_digest(digest))
+            };
+            detail.insert(
+                key.clone(),
+                json!({"decoder": digest, "confidence": r.confidence, "per_image": r.per_image}),
             );
-            out.insert(
-                n,
-                Decoded {
-                    logits: r.logits,
-                    features: r.features,
-                },
-            );
+            plain.insert(key, hex.into());
+            out.insert(digest.clone(), d);
         }
-        Ok::<_, ApiError>((out, logits))
+        Ok::<_, ApiError>((out, detail, plain, candidates, missing))
     })
     .await
     .map_err(ApiError::internal)??;
-    let (decoded, detail) = decoded;
+    let (decoded, detail, plain, candidates, missing) = decoded;
     let verdict = judge(&decoded, &candidates, st.cfg.fpr, LIST).map_err(ApiError::internal)?;
     let result = json!({
         "images": n_images,
         "asset_id": asset_id,
-        "decoded": decoded_hex(&decoded),
+        "decoded": plain,
         "decoding": detail,
+        "untestable": untestable_json(&missing),
         "candidates_tested": verdict.candidates_tested,
         "detected": verdict.detected,
         "fpr": verdict.fpr,

@@ -36,10 +36,9 @@ pub struct JobOutput {
     pub sh_degree: u8,
     pub records: Vec<AttributionRecord>,
     pub report: serde_json::Value,
-    /// The asset reference the dispute subtracts (`embed.reference`), one logit per bit.
-    pub reference: Option<Vec<f32>>,
-    /// The matched head the dispute reads the bits through (`embed.projection.matched`).
-    pub head: Option<crate::decoder::projection::ViewProjection>,
+    /// How a dispute reads the bits: the asset reference it subtracts (`embed.reference`), the
+    /// matched head (`embed.projection.matched`) and the decoder's digest.
+    pub readout: crate::store::Readout,
     pub train_views: usize,
     pub held_out_views: usize,
 }
@@ -113,12 +112,15 @@ pub fn execute(
         sh_degree: e.scene.sh_degree,
         records: e.records,
         report,
-        reference: e.report.reference_logits.clone(),
-        head: e
-            .report
-            .view_projection
-            .clone()
-            .filter(|p| p.head.is_some()),
+        readout: crate::store::Readout {
+            reference: e.report.reference_logits.clone(),
+            head: e
+                .report
+                .view_projection
+                .clone()
+                .filter(|p| p.head.is_some()),
+            decoder: Some(e.report.decoder.clone()),
+        },
         train_views: train.len(),
         held_out_views: held.len(),
     })

@@ -106,10 +106,7 @@ pub fn start(
 
 /// The decoder weights for `bits`: `weights_dir/decoder-{bits}.bpk` when present, else shipped.
 pub fn weights_path(cfg: &Config, bits: usize) -> Option<PathBuf> {
-    cfg.weights_dir
-        .as_ref()
-        .map(|d| d.join(format!("decoder-{bits}.bpk")))
-        .filter(|p| p.is_file())
+    crate::decoder::registry::folder_artifact(cfg.weights_dir.as_deref(), bits)
 }
 
 /// Message lengths this server can embed and verify.
@@ -426,8 +423,7 @@ async fn run_job(ctx: &Ctx, w: &WorkerSpec, c: Claimed) {
             token,
             new,
             &c.key,
-            out.reference.as_deref(),
-            out.head.as_ref(),
+            &out.readout,
             &out.records,
             out.report,
             audit,

@@ -94,6 +94,59 @@ pub struct Registration {
     pub reference: Option<Vec<f32>>,
     /// The asset's matched head, when the job read the bits through one.
     pub head: Option<ViewProjection>,
+    /// The digest of the decoder the bits were written for
+    /// ([`crate::decoder::artifact::digest_of`]); `None` for keys registered before it was
+    /// recorded (their bits are read with the server's current decoder).
+    pub decoder: Option<String>,
+}
+
+/// The associated data of a decoder digest sealed for asset `id`.
+fn decoder_aad(id: &str) -> String {
+    format!("{id}/decoder")
+}
+
+/// A decoder digest is 64 lowercase hex digits.
+pub(crate) fn validate_decoder(digest: &str) -> Result<()> {
+    if digest.len() == 64
+        && digest
+            .bytes()
+            .all(|b| matches!(b, b'0'..=b'9' | b'a'..=b'f'))
+    {
+        Ok(())
+    } else {
+        Err(StoreError::invalid(
+            "a decoder digest is 64 lowercase hex digits",
+        ))
+    }
+}
+
+/// How a dispute reads a watermarked asset's bits, registered with its key by the job that wrote
+/// them: all three come from the unmarked original and the decoder, none from the payload.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Readout {
+    /// The asset reference (one finite logit per bit), when the job decoded relative to it.
+    pub reference: Option<Vec<f32>>,
+    /// The asset's matched head, when the job read the bits through one.
+    pub head: Option<ViewProjection>,
+    /// The digest of the decoder the bits were written for
+    /// ([`crate::decoder::artifact::digest_of`]).
+    pub decoder: Option<String>,
+}
+
+impl Readout {
+    /// Checks every part against a key of `bits` bits.
+    pub(crate) fn validate(&self, bits: usize) -> Result<()> {
+        if let Some(r) = &self.reference {
+            validate_reference(r, bits)?;
+        }
+        if let Some(h) = &self.head {
+            validate_head(h, bits)?;
+        }
+        if let Some(d) = &self.decoder {
+            validate_decoder(d)?;
+        }
+        Ok(())
+    }
 }
 
 /// The associated data of a matched head sealed for asset `id`.
@@ -238,11 +291,24 @@ impl Store {
             }
             _ => return Err(StoreError::Crypto),
         };
+        let nonce: Option<Vec<u8>> = r.try_get("decoder_nonce")?;
+        let ct: Option<Vec<u8>> = r.try_get("decoder_ct")?;
+        let decoder = match (nonce, ct) {
+            (None, None) => None,
+            (Some(n), Some(c)) => {
+                let bytes = self.cipher().open(&n, &c, decoder_aad(&id).as_bytes())?;
+                let digest = String::from_utf8(bytes.to_vec()).map_err(|_| StoreError::Crypto)?;
+                validate_decoder(&digest).map_err(|_| StoreError::Crypto)?;
+                Some(digest)
+            }
+            _ => return Err(StoreError::Crypto),
+        };
         Ok(Registration {
             asset_id: parse_uuid(&id)?,
             key,
             reference,
             head,
+            decoder,
         })
     }
 
@@ -251,7 +317,7 @@ impl Store {
     pub async fn registration(&self, asset: Uuid) -> Result<Option<Registration>> {
         let row = sqlx::query(
             "SELECT asset_id, nonce, ciphertext, mask_nonce, mask_ct, reference_nonce, \
-             reference_ct, head_nonce, head_ct FROM keys WHERE asset_id = $1",
+             reference_ct, head_nonce, head_ct, decoder_nonce, decoder_ct FROM keys WHERE asset_id = $1",
         )
         .bind(asset.to_string())
         .fetch_optional(&self.pool)
@@ -263,7 +329,7 @@ impl Store {
     pub async fn registrations(&self) -> Result<Vec<Registration>> {
         let rows = sqlx::query(
             "SELECT asset_id, nonce, ciphertext, mask_nonce, mask_ct, reference_nonce, \
-             reference_ct, head_nonce, head_ct FROM keys ORDER BY created_at, asset_id",
+             reference_ct, head_nonce, head_ct, decoder_nonce, decoder_ct FROM keys ORDER BY created_at, asset_id",
         )
         .fetch_all(&self.pool)
         .await?;
@@ -286,22 +352,21 @@ impl Store {
             .collect())
     }
 
-    /// Seals and inserts the key of `asset`, its reference and its matched head, if any, on
-    /// `conn` (inside the caller's transaction).
+    /// Seals and inserts the key of `asset`, its reference, its matched head and its decoder's
+    /// digest, if any, on `conn` (inside the caller's transaction).
     pub(crate) async fn insert_key_in(
         &self,
         conn: &mut AnyConnection,
         asset: Uuid,
         key: &WatermarkKey,
-        reference: Option<&[f32]>,
-        head: Option<&ViewProjection>,
+        readout: &Readout,
     ) -> Result<()> {
         let id = asset.to_string();
         let sealed = self.seal_key(key, &id)?;
-        let reference = match reference {
+        readout.validate(key.bits())?;
+        let reference = match &readout.reference {
             None => None,
             Some(r) => {
-                validate_reference(r, key.bits())?;
                 let bytes: Vec<u8> = r.iter().flat_map(|z| z.to_le_bytes()).collect();
                 Some(self.cipher().seal(&bytes, reference_aad(&id).as_bytes())?)
             }
@@ -310,19 +375,27 @@ impl Store {
             Some(s) => (Some(s.nonce), Some(s.ciphertext)),
             None => (None, None),
         };
-        let (head_nonce, head_ct) = match head {
+        let (head_nonce, head_ct) = match &readout.head {
             None => (None, None),
             Some(h) => {
-                validate_head(h, key.bits())?;
                 let json = serde_json::to_vec(h).expect("a projection serialises");
                 let s = self.cipher().seal(&json, head_aad(&id).as_bytes())?;
                 (Some(s.nonce), Some(s.ciphertext))
             }
         };
+        let (decoder_nonce, decoder_ct) = match &readout.decoder {
+            None => (None, None),
+            Some(d) => {
+                let s = self
+                    .cipher()
+                    .seal(d.as_bytes(), decoder_aad(&id).as_bytes())?;
+                (Some(s.nonce), Some(s.ciphertext))
+            }
+        };
         sqlx::query(
             "INSERT INTO keys (asset_id, bits, nonce, ciphertext, mask_nonce, mask_ct, \
-             reference_nonce, reference_ct, head_nonce, head_ct, created_at) \
-             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11)",
+             reference_nonce, reference_ct, head_nonce, head_ct, decoder_nonce, decoder_ct, \
+             created_at) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13)",
         )
         .bind(&id)
         .bind(key.bits() as i64)
@@ -334,6 +407,8 @@ impl Store {
         .bind(reference_ct)
         .bind(head_nonce)
         .bind(head_ct)
+        .bind(decoder_nonce)
+        .bind(decoder_ct)
         .bind(time::now())
         .execute(&mut *conn)
         .await
@@ -353,8 +428,8 @@ pub(crate) fn validate_message(message: &[bool]) -> Result<()> {
 }
 
 impl Store {
-    /// Re-seals every secret of the database — each key's message, mask and reference, each
-    /// job's message and mask, the master-key check value — under `new`, in one transaction
+    /// Re-seals every secret of the database — each key's message, mask, reference, matched head
+    /// and decoder digest, each job's message and mask, the master-key check value — under `new`, in one transaction
     /// with one `master_key.rotate` audit row by `actor`: either all of them or none move. The
     /// store (this handle and every other process's) must then be reopened with `new`; run it
     /// with the service stopped, or rows the service seals meanwhile stay under the old key.
@@ -375,6 +450,7 @@ impl Store {
                     ("mask_nonce", "mask_ct", |id| mask_aad(id)),
                     ("reference_nonce", "reference_ct", |id| reference_aad(id)),
                     ("head_nonce", "head_ct", |id| head_aad(id)),
+                    ("decoder_nonce", "decoder_ct", |id| decoder_aad(id)),
                 ],
             ),
             (

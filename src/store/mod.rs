@@ -49,7 +49,7 @@ pub use jobs::{
     BACKOFF_BASE, BACKOFF_CAP, Claimed, Job, JobCounts, JobState, MAX_ATTEMPTS, MAX_LEASE, NewJob,
     ProgressUpdate, backoff,
 };
-pub use keys::{MAX_MESSAGE_BITS, Registration, WatermarkKey};
+pub use keys::{MAX_MESSAGE_BITS, Readout, Registration, WatermarkKey};
 pub use lock::{DataDirLock, LOCK_FILE, LockError, LockMode};
 pub use time::normalize_timestamp;
 pub use verifications::NewVerification;

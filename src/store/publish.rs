@@ -4,9 +4,8 @@ use super::assets::{self, Asset, AssetKind, NewAsset};
 use super::attribution;
 use super::audit::{self, AuditEntry};
 use super::error::{Result, StoreError};
-use super::keys::{WatermarkKey, validate_head, validate_message, validate_reference};
+use super::keys::{Readout, WatermarkKey, validate_message};
 use super::{Store, time};
-use crate::decoder::projection::ViewProjection;
 use crate::embed::attribution::AttributionRecord;
 use sqlx::Row;
 use uuid::Uuid;
@@ -15,9 +14,8 @@ impl Store {
     /// Publishes the result of `job` in one `BEGIN IMMEDIATE` transaction, all or nothing: checks
     /// that the job is running under `token` (else `LeaseLost`, nothing written), inserts the
     /// watermarked asset (`source_job_id` = the job, unique; `parent_id` = the job's asset when
-    /// `None`), its sealed key (which must be the job's), asset `reference` (one finite logit
-    /// per bit, when the job decoded relative to the asset) and matched `head` (when the job read
-    /// the bits through one), every attribution record and the
+    /// `None`), its sealed key (which must be the job's) and `readout` (asset reference, matched
+    /// head, decoder digest: how a dispute reads the bits), every attribution record and the
     /// embed `report`, marks the job done with `result_asset_id`, and appends the audit row
     /// (`asset_id`, `job_id` filled in when `None`). A second publish, a stale token or a lease taken over by another worker
     /// writes nothing. `Invalid` when the asset or message does not match the job (the job keeps
@@ -29,19 +27,13 @@ impl Store {
         token: Uuid,
         mut asset: NewAsset,
         key: &WatermarkKey,
-        reference: Option<&[f32]>,
-        head: Option<&ViewProjection>,
+        readout: &Readout,
         attribution: &[AttributionRecord],
         report: serde_json::Value,
         mut audit_entry: AuditEntry,
     ) -> Result<Asset> {
         validate_message(&key.message)?;
-        if let Some(r) = reference {
-            validate_reference(r, key.bits())?;
-        }
-        if let Some(h) = head {
-            validate_head(h, key.bits())?;
-        }
+        readout.validate(key.bits())?;
         if asset.kind != AssetKind::Watermarked {
             return Err(StoreError::invalid("a job publishes a watermarked asset"));
         }
@@ -103,8 +95,7 @@ impl Store {
             .bind(seq)
             .execute(&mut *tx)
             .await?;
-        self.insert_key_in(&mut tx, stored.id, key, reference, head)
-            .await?;
+        self.insert_key_in(&mut tx, stored.id, key, readout).await?;
         attribution::insert_in(&mut tx, self.backend(), seq, attribution).await?;
         let now = time::now();
         sqlx::query(

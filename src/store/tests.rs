@@ -99,6 +99,38 @@ async fn scalar(dir: &TempDir, sql: &'static str) -> i64 {
         .expect("scalar")
 }
 
+/// Checks that the sealed pair `<part>_nonce`, `<part>_ct` of the one `keys` row (asset `id`)
+/// is authenticated — a changed byte, or half of the pair missing, does not open — and that a
+/// row without it (both NULL, as before its migration) opens; returns that registration.
+async fn sealed_column_is_checked(
+    dir: &TempDir,
+    store: &Store,
+    id: uuid::Uuid,
+    part: &str,
+) -> crate::store::Registration {
+    let mut conn = raw(dir).await;
+    tamper_byte(&mut conn, &format!("{part}_ct")).await;
+    assert!(matches!(
+        store.registration(id).await,
+        Err(StoreError::Crypto)
+    ));
+    for (column, opens) in [("ct", false), ("nonce", true)] {
+        sqlx::query(sqlx::AssertSqlSafe(format!(
+            "UPDATE keys SET {part}_{column} = NULL"
+        )))
+        .execute(&mut conn)
+        .await
+        .expect("clear");
+        let r = store.registrations().await;
+        assert_eq!(r.is_ok(), opens, "{part} without its {column}: {r:?}");
+    }
+    store
+        .registration(id)
+        .await
+        .expect("read")
+        .expect("registered")
+}
+
 /// Flips the bits of byte 5 of `column` of the one row of `keys`, bypassing the store.
 async fn tamper_byte(conn: &mut AnyConnection, column: &str) {
     let mut v: Vec<u8> =
@@ -282,8 +314,7 @@ async fn publish(
             c.lease_token,
             asset,
             &c.key,
-            None,
-            None,
+            &Readout::default(),
             recs,
             serde_json::json!({ "psnr": 41.5 }),
             entry("watermark.publish"),
@@ -970,8 +1001,10 @@ async fn an_asset_reference_is_registered_sealed_and_checked() {
                     c.lease_token,
                     watermarked(store, a.id, 10, b"w"),
                     &c.key,
-                    Some(&reference),
-                    None,
+                    &Readout {
+                        reference: Some(reference.clone()),
+                        ..Readout::default()
+                    },
                     &records(10),
                     serde_json::Value::Null,
                     entry("watermark.publish"),
@@ -1001,31 +1034,8 @@ async fn an_asset_reference_is_registered_sealed_and_checked() {
     let all = store.registrations().await.expect("all");
     assert_eq!(all.len(), 1);
     assert_eq!(all[0].reference, Some(reference));
-    // Sealed: a changed byte, or half of it missing, does not open.
-    let mut conn = raw(&dir).await;
-    tamper_byte(&mut conn, "reference_ct").await;
-    assert!(matches!(
-        store.registration(wm.id).await,
-        Err(StoreError::Crypto)
-    ));
-    sqlx::query("UPDATE keys SET reference_ct = NULL")
-        .execute(&mut conn)
-        .await
-        .expect("half");
-    assert!(matches!(
-        store.registrations().await,
-        Err(StoreError::Crypto)
-    ));
-    // A key without a reference (every row before migration 0003) reads as none.
-    sqlx::query("UPDATE keys SET reference_nonce = NULL")
-        .execute(&mut conn)
-        .await
-        .expect("none");
-    let reg = store
-        .registration(wm.id)
-        .await
-        .expect("read")
-        .expect("registered");
+    // Sealed; a key without a reference (every row before migration 0003) reads as none.
+    let reg = sealed_column_is_checked(&dir, &store, wm.id, "reference").await;
     assert_eq!(reg.reference, None);
 }
 
@@ -1056,8 +1066,10 @@ async fn a_matched_head_is_registered_sealed_and_checked() {
                     c.lease_token,
                     watermarked(store, a.id, 10, b"w"),
                     &c.key,
-                    None,
-                    Some(&head),
+                    &Readout {
+                        head: Some(head.clone()),
+                        ..Readout::default()
+                    },
                     &records(10),
                     serde_json::Value::Null,
                     entry("watermark.publish"),
@@ -1089,24 +1101,63 @@ async fn a_matched_head_is_registered_sealed_and_checked() {
         .expect("read")
         .expect("registered");
     assert_eq!((reg.reference, reg.head.as_ref()), (None, Some(&head)));
-    // Sealed: a changed byte does not open.
-    let mut conn = raw(&dir).await;
-    tamper_byte(&mut conn, "head_ct").await;
-    assert!(matches!(
-        store.registration(wm.id).await,
-        Err(StoreError::Crypto)
-    ));
-    // A key without a head (every row before migration 0004) reads as none.
-    sqlx::query("UPDATE keys SET head_ct = NULL, head_nonce = NULL")
-        .execute(&mut conn)
-        .await
-        .expect("none");
+    // Sealed; a key without a head (every row before migration 0004) reads as none.
+    let reg = sealed_column_is_checked(&dir, &store, wm.id, "head").await;
+    assert_eq!(reg.head, None);
+}
+
+/// A decoder digest (any 64 lowercase hex digits).
+const TEST_DECODER: &str = "0123456789abcdef0123456789abcdef0123456789abcdef0123456789abcdef";
+
+#[tokio::test]
+async fn the_decoder_digest_is_registered_sealed_and_checked() {
+    let (dir, store) = setup().await;
+    let a = original(&store).await;
+    enqueue(&store, a.id, 3).await;
+    let c = store.claim("w1", LONG).await.expect("claim").expect("job");
+    let publish_with = |decoder: &str| {
+        let store = &store;
+        let c = &c;
+        let readout = Readout {
+            decoder: Some(decoder.to_string()),
+            ..Readout::default()
+        };
+        async move {
+            store
+                .publish_result(
+                    c.job.id,
+                    c.lease_token,
+                    watermarked(store, a.id, 10, b"w"),
+                    &c.key,
+                    &readout,
+                    &records(10),
+                    serde_json::Value::Null,
+                    entry("watermark.publish"),
+                )
+                .await
+        }
+    };
+    // Not a digest: nothing is written and the job keeps running.
+    for bad in [
+        "",
+        "0123",
+        &TEST_DECODER.to_uppercase(),
+        &format!("{TEST_DECODER}0"),
+    ] {
+        let r = publish_with(bad).await;
+        assert!(matches!(r, Err(StoreError::Invalid(_))), "{bad:?}: {r:?}");
+    }
+    assert_eq!(scalar(&dir, "SELECT COUNT(*) FROM keys").await, 0);
+    let wm = publish_with(TEST_DECODER).await.expect("publish");
     let reg = store
         .registration(wm.id)
         .await
         .expect("read")
         .expect("registered");
-    assert_eq!(reg.head, None);
+    assert_eq!(reg.decoder.as_deref(), Some(TEST_DECODER));
+    // Sealed; a key registered before migration 0006 reads as none.
+    let reg = sealed_column_is_checked(&dir, &store, wm.id, "decoder").await;
+    assert_eq!(reg.decoder, None);
 }
 
 #[tokio::test]
@@ -1126,8 +1177,11 @@ async fn rotating_the_master_key_reseals_everything_and_the_old_key_opens_nothin
             c.lease_token,
             watermarked(&store, a.id, 10, b"w"),
             &c.key,
-            Some(&reference),
-            Some(&head),
+            &Readout {
+                reference: Some(reference.clone()),
+                head: Some(head.clone()),
+                decoder: Some(TEST_DECODER.into()),
+            },
             &records(10),
             serde_json::Value::Null,
             entry("watermark.publish"),
@@ -1137,10 +1191,10 @@ async fn rotating_the_master_key_reseals_everything_and_the_old_key_opens_nothin
     let queued = enqueue(&store, a.id, 3).await;
     let before_bytes = stored_bytes(&dir).await;
     let new = MasterKey::generate();
-    // keys: message, mask, reference, head; jobs: two × (message, mask).
+    // keys: message, mask, reference, head, decoder; jobs: two × (message, mask).
     assert_eq!(
         store.rotate_master_key(&new, "cli").await.expect("rotate"),
-        8
+        9
     );
     store.close().await;
     assert!(matches!(
@@ -1158,6 +1212,7 @@ async fn rotating_the_master_key_reseals_everything_and_the_old_key_opens_nothin
     assert_eq!(reg.key, c.key);
     assert_eq!(reg.reference.as_deref(), Some(&reference[..]));
     assert_eq!(reg.head, Some(head));
+    assert_eq!(reg.decoder.as_deref(), Some(TEST_DECODER));
     let next = store
         .claim("w2", LONG)
         .await
@@ -1209,8 +1264,7 @@ async fn every_job_gets_a_secret_random_mask_and_its_result_keeps_it() {
             c.lease_token,
             watermarked(&store, a.id, 10, b"w0"),
             &other,
-            None,
-            None,
+            &Readout::default(),
             &records(10),
             serde_json::Value::Null,
             entry("watermark.publish"),
@@ -1823,8 +1877,7 @@ async fn a_publish_failing_half_way_rolls_back_everything() {
             c.lease_token,
             short,
             &c.key,
-            None,
-            None,
+            &Readout::default(),
             &records(10),
             serde_json::Value::Null,
             entry("watermark.publish"),
@@ -1840,8 +1893,7 @@ async fn a_publish_failing_half_way_rolls_back_everything() {
                 message: c.key.message[..31].to_vec(),
                 mask: c.key.mask[..31].to_vec(),
             },
-            None,
-            None,
+            &Readout::default(),
             &records(10),
             serde_json::Value::Null,
             entry("watermark.publish"),

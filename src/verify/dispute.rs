@@ -1,7 +1,8 @@
-//! A dispute: rendered images are decoded once per message length (logits and the decoder's
-//! pooled features averaged over the images) and tested against every candidate's embedded
-//! bits — each candidate's bits read through its asset's matched head and relative to its asset
-//! reference, when it has them — with p-values corrected for the number of candidates tested.
+//! A dispute: rendered images are decoded once per decoder (logits and the decoder's pooled
+//! features averaged over the images) and tested against every candidate's embedded bits — each
+//! candidate's bits read with the decoder they were written for (`decoder::registry`), through
+//! its asset's matched head and relative to its asset reference, when it has them — with p-values
+//! corrected for the number of candidates tested.
 
 use std::collections::BTreeMap;
 
@@ -12,13 +13,21 @@ use super::message::to_hex;
 use super::stats::{Detection, StatsError, detect};
 use crate::decoder::projection::ViewProjection;
 
-/// What the images decode to for one message length, averaged over the images.
+/// What the images decode to with one decoder, averaged over the images.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Decoded {
-    /// The shipped decoder's logits.
+    /// The decoder's own logits (its head and whitening).
     pub logits: Vec<f32>,
     /// The decoder's pooled features (what a matched head reads).
     pub features: Vec<f32>,
+}
+
+impl Decoded {
+    /// Hex of the decoder's own bits (without any head or reference), for the response.
+    pub fn plain_hex(&self) -> String {
+        let bits: Vec<bool> = self.logits.iter().map(|&z| z > 0.0).collect();
+        to_hex(&bits)
+    }
 }
 
 /// A registered watermark the images are tested against.
@@ -34,6 +43,8 @@ pub struct Candidate {
     /// read the bits through one: the candidate's logits are the head's of the decoded
     /// features instead of the shipped decoder's.
     pub head: Option<ViewProjection>,
+    /// The digest of the decoder its bits are read with (the key in [`judge`]'s decodings).
+    pub decoder: String,
 }
 
 /// One candidate's outcome.
@@ -44,6 +55,8 @@ pub struct CandidateResult {
     pub reference: bool,
     /// Whether the bits were read through the candidate's matched head.
     pub matched_head: bool,
+    /// The digest of the decoder that read them.
+    pub decoder: String,
     #[serde(flatten)]
     pub detection: Detection,
 }
@@ -97,17 +110,17 @@ fn candidate_logits<'a>(
     }
 }
 
-/// Tests what the images decoded to (`decoded[bits]`, one per message length) against every
-/// candidate, each read through the candidate's matched head and relative to its reference
-/// when it has them. A candidate whose length was not decoded is an error (the caller decodes
-/// every length it tests).
+/// Tests what the images decoded to (`decoded[digest]`, one per decoder) against every
+/// candidate, each read with its decoder, through its matched head and relative to its
+/// reference when it has them. A candidate whose decoder was not decoded with, or does not read
+/// its length, is an error (the caller decodes with every decoder it tests).
 ///
 /// For an image that does not carry a candidate's watermark the test stays exact: the head and
 /// the reference are fixed before the image is seen and are independent of the candidate's
 /// secret mask (both come from the unmarked original), so each read bit matches the payload
 /// with probability ½ (`store::keys`).
 pub fn judge(
-    decoded: &BTreeMap<usize, Decoded>,
+    decoded: &BTreeMap<String, Decoded>,
     candidates: &[Candidate],
     fpr: f64,
     limit: usize,
@@ -116,18 +129,23 @@ pub fn judge(
     let mut results = candidates
         .iter()
         .map(|c| {
-            let d = decoded
-                .get(&c.payload.len())
-                .ok_or(StatsError::LengthMismatch {
-                    decoded: 0,
+            let d = decoded.get(&c.decoder).ok_or(StatsError::LengthMismatch {
+                decoded: 0,
+                message: c.payload.len(),
+            })?;
+            if d.logits.len() != c.payload.len() {
+                return Err(StatsError::LengthMismatch {
+                    decoded: d.logits.len(),
                     message: c.payload.len(),
-                })?;
+                });
+            }
             let z = candidate_logits(d, c)?;
             let bits = bits_relative(&z, c.reference.as_deref())?;
             Ok(CandidateResult {
                 asset_id: c.asset_id,
                 reference: c.reference.is_some(),
                 matched_head: c.head.is_some(),
+                decoder: c.decoder.clone(),
                 detection: detect(&bits, &c.payload, k, fpr)?,
             })
         })
@@ -150,21 +168,14 @@ pub fn judge(
     })
 }
 
-/// Hex of the shipped decoder's bits per length (without any head or reference), for the
-/// response.
-pub fn decoded_hex(decoded: &BTreeMap<usize, Decoded>) -> BTreeMap<usize, String> {
-    decoded
-        .iter()
-        .map(|(&n, d)| {
-            let bits: Vec<bool> = d.logits.iter().map(|&z| z > 0.0).collect();
-            (n, to_hex(&bits))
-        })
-        .collect()
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A stand-in digest for a decoder of `bits` bits.
+    fn dec(bits: usize) -> String {
+        format!("decoder-{bits}")
+    }
 
     fn bits(seed: u64, n: usize) -> Vec<bool> {
         (0..n)
@@ -188,13 +199,14 @@ mod tests {
         let m = bits(0xdead_beef_1234_5678, 32);
         let mut d = m.clone();
         d[0] = !d[0]; // 31 of 32
-        let decoded = BTreeMap::from([(32, plain(logits(&d)))]);
+        let decoded = BTreeMap::from([(dec(32), plain(logits(&d)))]);
         let mut cands: Vec<Candidate> = (0..9)
             .map(|i| Candidate {
                 asset_id: Uuid::from_u128(i),
                 payload: m.iter().map(|&b| !b).collect(), // 1 of 32
                 reference: None,
                 head: None,
+                decoder: dec(32),
             })
             .collect();
         cands.push(Candidate {
@@ -202,6 +214,7 @@ mod tests {
             payload: m,
             reference: None,
             head: None,
+            decoder: dec(32),
         });
         let v = judge(&decoded, &cands, 1e-6, 3).unwrap();
         assert_eq!(v.candidates_tested, 10);
@@ -223,12 +236,13 @@ mod tests {
         let m = bits(0x0123_4567_89ab_cdef, 32);
         let lean = vec![2.0f32; 32];
         let z: Vec<f32> = m.iter().map(|&b| if b { 3.0 } else { 1.0 }).collect();
-        let decoded = BTreeMap::from([(32, plain(z))]);
+        let decoded = BTreeMap::from([(dec(32), plain(z))]);
         let with = Candidate {
             asset_id: Uuid::from_u128(1),
             payload: m.clone(),
             reference: Some(lean),
             head: None,
+            decoder: dec(32),
         };
         let without = Candidate {
             reference: None,
@@ -246,7 +260,7 @@ mod tests {
             m.iter().filter(|&&b| b).count()
         );
         // The response's decoded bits are the plain ones.
-        assert_eq!(decoded_hex(&decoded)[&32], "ffffffff");
+        assert_eq!(decoded[&dec(32)].plain_hex(), "ffffffff");
         // A reference of another length is an error, not a silent misread.
         assert!(bits_relative(&[1.0, 2.0], Some(&[0.0])).is_err());
     }
@@ -267,12 +281,13 @@ mod tests {
         };
         let z = head.matched_logits_of(&d.features).unwrap();
         assert_eq!(z, vec![0.5, 0.0]);
-        let decoded = BTreeMap::from([(2, d)]);
+        let decoded = BTreeMap::from([(dec(2), d)]);
         let cand = Candidate {
             asset_id: Uuid::from_u128(7),
             payload: vec![true, false],
             reference: Some(vec![0.0, 0.25]),
             head: Some(head.clone()),
+            decoder: dec(2),
         };
         let v = judge(&decoded, std::slice::from_ref(&cand), 1e-6, 10).unwrap();
         let r = &v.results[0];
@@ -294,15 +309,49 @@ mod tests {
 
     #[test]
     fn no_candidates_is_not_detected_and_missing_lengths_are_errors() {
-        let decoded = BTreeMap::from([(32, plain(vec![1.0; 32]))]);
+        let decoded = BTreeMap::from([(dec(32), plain(vec![1.0; 32]))]);
         let v = judge(&decoded, &[], 1e-6, 10).unwrap();
         assert!(!v.detected && v.best.is_none() && v.candidates_tested == 0);
+        // A decoder not decoded with, or one that reads another length.
         let c = Candidate {
             asset_id: Uuid::nil(),
             payload: vec![true; 48],
             reference: None,
             head: None,
+            decoder: dec(48),
+        };
+        assert!(judge(&decoded, std::slice::from_ref(&c), 1e-6, 10).is_err());
+        let c = Candidate {
+            decoder: dec(32),
+            ..c
         };
         assert!(judge(&decoded, &[c], 1e-6, 10).is_err());
+    }
+
+    #[test]
+    fn each_candidate_is_read_with_its_own_decoder() {
+        // Two decoders of the same length read the same images differently: each candidate is
+        // tested on its own decoder's bits, and the response says which.
+        let m = bits(0x5555_0000_ffff_1234, 32);
+        let other: Vec<bool> = m.iter().map(|&b| !b).collect();
+        let decoded = BTreeMap::from([
+            ("old".to_string(), plain(logits(&m))),
+            ("new".to_string(), plain(logits(&other))),
+        ]);
+        let cand = |id: u128, decoder: &str| Candidate {
+            asset_id: Uuid::from_u128(id),
+            payload: m.clone(),
+            reference: None,
+            head: None,
+            decoder: decoder.into(),
+        };
+        let v = judge(&decoded, &[cand(1, "new"), cand(2, "old")], 1e-6, 10).unwrap();
+        let best = v.best.unwrap();
+        assert_eq!(
+            (best.asset_id, best.decoder.as_str()),
+            (Uuid::from_u128(2), "old")
+        );
+        assert_eq!(best.detection.matches, 32);
+        assert_eq!(v.results[1].detection.matches, 0);
     }
 }

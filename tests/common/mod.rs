@@ -265,6 +265,19 @@ impl TestApp {
         images: &[image::RgbImage],
         asset: Option<&str>,
     ) -> Value {
+        let r = self.verify_response(token, images, asset).await;
+        assert_eq!(r.status(), StatusCode::OK);
+        r.json().await.unwrap()
+    }
+
+    /// `POST /v1/verify` of `images` (as PNGs), against `asset` when given: the response as it
+    /// comes.
+    pub async fn verify_response(
+        &self,
+        token: &str,
+        images: &[image::RgbImage],
+        asset: Option<&str>,
+    ) -> reqwest::Response {
         let mut form = Form::new();
         for img in images {
             let mut png = vec![];
@@ -275,16 +288,13 @@ impl TestApp {
         if let Some(a) = asset {
             form = form.text("asset_id", a.to_string());
         }
-        let r = self
-            .client
+        self.client
             .post(self.url("/v1/verify"))
             .bearer_auth(token)
             .multipart(form)
             .send()
             .await
-            .unwrap();
-        assert_eq!(r.status(), StatusCode::OK);
-        r.json().await.unwrap()
+            .unwrap()
     }
 
     /// The `/metrics` page.

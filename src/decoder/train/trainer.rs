@@ -457,6 +457,7 @@ impl Trainer {
             encoder: Some(net.encoder.freeze()),
             reference: None,
             projection: None,
+            file_digest: None,
         }
     }
 

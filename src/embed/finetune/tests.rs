@@ -45,6 +45,7 @@ fn model(bits: usize) -> WatermarkModel {
         encoder: None,
         reference: None,
         projection: None,
+        file_digest: None,
     }
 }
 

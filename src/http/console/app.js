@@ -386,7 +386,11 @@ function explainP(res) {
     (p !== null ? ` (here ${fmtP(p)}, corrected for the ${res.candidates_tested} candidate(s) tested)` : "") +
     `. The server declares a detection only when that probability is below ${fmtP(res.fpr)}: an unmarked image is ` +
     `wrongly declared marked at most that often. A small p-value is evidence of the watermark; a large one says the ` +
-    `images do not show it clearly enough (another view, a larger or less compressed image may).`;
+    `images do not show it clearly enough (another view, a larger or less compressed image may).` +
+    (res.untestable && res.untestable.count > 0
+      ? ` ${res.untestable.count} registered watermark(s) were not tested: they were written with a decoder this ` +
+        `server no longer holds (the operator can restore it in the weights folder's archive/).`
+      : "");
 }
 
 function verifyPage() {

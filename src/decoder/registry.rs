@@ -1,0 +1,254 @@
+//! Which decoder reads an asset's bits.
+//!
+//! A watermark is written for one decoder: its features, whitening and head decide every bit, and
+//! the asset's matched head lives in its feature space. Another decoder reads the same images as
+//! noise, so a dispute that used whatever decoder the server ships *today* would report "not
+//! detected" for every asset marked before an upgrade. The embedding therefore records the
+//! decoder's digest ([`digest_of`]: its weights and sidecar) in its report and the service seals
+//! it with the key (`store::keys`, migration 0006); a dispute reads each candidate with the
+//! decoder of that digest, found among
+//!
+//! 1. the **current** decoder for its length — `weights_dir/decoder-{bits}.bpk` when the server
+//!    is configured with one, else the one shipped in the binary (what new jobs use);
+//! 2. the **shipped** one, when the weights folder overrides it;
+//! 3. the **archive**: every `*.bpk` artifact (with its `.json` sidecar) under
+//!    `weights_dir/archive/`, where an operator keeps the decoders of earlier releases or
+//!    earlier weights folders so that their assets stay verifiable.
+//!
+//! A digest found nowhere is an answer of its own ([`find`] → `None`), never a silent misread.
+
+use std::path::{Path, PathBuf};
+
+use burn::tensor::Device;
+
+use super::artifact::{WatermarkModel, WeightsError, digest_of, shipped_bytes, sidecar_path};
+
+/// Where a decoder's files are.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Source {
+    /// Compiled into the binary for this many bits.
+    Shipped(usize),
+    /// An artifact on disk (decoder weights; the sidecar beside it).
+    File(PathBuf),
+}
+
+/// A decoder found for a length, with its digest.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Located {
+    pub bits: usize,
+    pub digest: String,
+    pub source: Source,
+}
+
+impl Located {
+    /// Loads the model; `Mismatch` when its files changed since they were hashed, or it reads
+    /// another number of bits.
+    pub fn load(&self, device: &Device) -> Result<WatermarkModel, WeightsError> {
+        let m = match &self.source {
+            Source::Shipped(bits) => WatermarkModel::shipped(*bits, device)?,
+            Source::File(p) => WatermarkModel::load(p, device)?,
+        };
+        if m.digest() != self.digest || m.bits() != self.bits {
+            return Err(WeightsError::Mismatch(format!(
+                "the decoder files for {} bits changed while they were being loaded",
+                self.bits
+            )));
+        }
+        Ok(m)
+    }
+}
+
+/// The decoder file for `bits` in the weights folder, when it holds one.
+pub fn folder_artifact(weights_dir: Option<&Path>, bits: usize) -> Option<PathBuf> {
+    weights_dir
+        .map(|d| d.join(format!("decoder-{bits}.bpk")))
+        .filter(|p| p.is_file())
+}
+
+/// The folder of archived decoders under a weights folder.
+pub fn archive_dir(weights_dir: &Path) -> PathBuf {
+    weights_dir.join("archive")
+}
+
+fn read(p: &Path) -> Result<Vec<u8>, WeightsError> {
+    std::fs::read(p).map_err(|source| WeightsError::Io {
+        path: p.to_path_buf(),
+        source,
+    })
+}
+
+/// The artifact at `path` with its digest and length (`None` when its sidecar does not say how
+/// many bits it reads: not an artifact).
+fn locate_file(path: &Path) -> Result<Option<Located>, WeightsError> {
+    let decoder = read(path)?;
+    let sidecar = read(&sidecar_path(path))?;
+    #[derive(serde::Deserialize)]
+    struct Bits {
+        bits: usize,
+    }
+    let Ok(Bits { bits }) = serde_json::from_slice::<Bits>(&sidecar) else {
+        return Ok(None);
+    };
+    Ok(Some(Located {
+        bits,
+        digest: digest_of(&decoder, &sidecar),
+        source: Source::File(path.to_path_buf()),
+    }))
+}
+
+/// The shipped decoder for `bits` (`None` when none is shipped for that length).
+fn locate_shipped(bits: usize) -> Option<Located> {
+    let (decoder, _, sidecar) = shipped_bytes(bits)?;
+    if decoder.is_empty() || sidecar.is_empty() {
+        return None;
+    }
+    Some(Located {
+        bits,
+        digest: digest_of(decoder, sidecar),
+        source: Source::Shipped(bits),
+    })
+}
+
+/// The decoder new jobs of `bits` bits use: the weights folder's, else the shipped one.
+pub fn current(weights_dir: Option<&Path>, bits: usize) -> Result<Located, WeightsError> {
+    match folder_artifact(weights_dir, bits) {
+        Some(p) => match locate_file(&p)? {
+            Some(l) if l.bits == bits => Ok(l),
+            Some(l) => Err(WeightsError::Mismatch(format!(
+                "{} decodes {} bits, its name says {bits}",
+                p.display(),
+                l.bits
+            ))),
+            None => Err(WeightsError::Mismatch(format!(
+                "{}: the sidecar does not say how many bits it reads",
+                p.display()
+            ))),
+        },
+        None => locate_shipped(bits).ok_or(if super::artifact::shipped_bytes(bits).is_some() {
+            WeightsError::NotShipped { bits }
+        } else {
+            WeightsError::NoShippedWeights { bits }
+        }),
+    }
+}
+
+/// The decoder for `bits` bits whose digest is `digest`: the current one, the shipped one or an
+/// archived one (module docs), or `None` when this server holds none. Archive files that are
+/// not artifacts (no sidecar, or one without a length) are passed over; one that cannot be read
+/// is an error.
+pub fn find(
+    weights_dir: Option<&Path>,
+    bits: usize,
+    digest: &str,
+) -> Result<Option<Located>, WeightsError> {
+    if let Ok(l) = current(weights_dir, bits)
+        && l.digest == digest
+    {
+        return Ok(Some(l));
+    }
+    if let Some(l) = locate_shipped(bits).filter(|l| l.digest == digest) {
+        return Ok(Some(l));
+    }
+    let Some(dir) = weights_dir.map(archive_dir).filter(|d| d.is_dir()) else {
+        return Ok(None);
+    };
+    let entries = std::fs::read_dir(&dir).map_err(|source| WeightsError::Io {
+        path: dir.clone(),
+        source,
+    })?;
+    let mut paths: Vec<PathBuf> = entries
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| {
+            let name = p.file_name().and_then(|n| n.to_str()).unwrap_or("");
+            name.ends_with(".bpk") && !name.ends_with(".encoder.bpk") && p.is_file()
+        })
+        .filter(|p| sidecar_path(p).is_file())
+        .collect();
+    paths.sort();
+    for p in paths {
+        if let Some(l) = locate_file(&p)?
+            && l.bits == bits
+            && l.digest == digest
+        {
+            return Ok(Some(l));
+        }
+    }
+    Ok(None)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Writes the shipped 32-bit artifact to `dir/name.bpk` with its sidecar, `edit` applied to
+    /// the sidecar's JSON (a different sidecar is a different decoder).
+    fn write_shipped(dir: &Path, name: &str, edit: impl FnOnce(&mut serde_json::Value)) -> PathBuf {
+        let (decoder, _, sidecar) = shipped_bytes(32).expect("shipped");
+        let mut json: serde_json::Value = serde_json::from_slice(sidecar).expect("json");
+        edit(&mut json);
+        std::fs::create_dir_all(dir).expect("dir");
+        let p = dir.join(format!("{name}.bpk"));
+        std::fs::write(&p, decoder).expect("write");
+        std::fs::write(sidecar_path(&p), serde_json::to_vec(&json).expect("json")).expect("write");
+        p
+    }
+
+    #[test]
+    fn a_digest_is_found_where_the_decoder_is_and_nowhere_else() {
+        let shipped = current(None, 32).expect("shipped 32");
+        assert_eq!(shipped.source, Source::Shipped(32));
+        assert_eq!(shipped.digest.len(), 64);
+        // The loaded model knows its own digest.
+        let m = shipped.load(&Device::flex()).expect("load");
+        assert_eq!(m.digest(), shipped.digest);
+        assert_eq!(
+            find(None, 32, &shipped.digest).unwrap(),
+            Some(shipped.clone())
+        );
+        // Another length's decoder, or an unknown digest, is not found.
+        assert_eq!(find(None, 48, &shipped.digest).unwrap(), None);
+        assert_eq!(find(None, 32, &"0".repeat(64)).unwrap(), None);
+
+        // A weights folder overriding 32 bits: it becomes current, the shipped one stays found.
+        let dir = tempfile::tempdir().expect("tempdir");
+        let own = write_shipped(dir.path(), "decoder-32", |j| j["note"] = "ours".into());
+        let cur = current(Some(dir.path()), 32).expect("current");
+        assert_eq!(cur.source, Source::File(own));
+        assert_ne!(cur.digest, shipped.digest);
+        assert_eq!(
+            find(Some(dir.path()), 32, &cur.digest).unwrap(),
+            Some(cur.clone())
+        );
+        assert_eq!(
+            find(Some(dir.path()), 32, &shipped.digest).unwrap(),
+            Some(shipped.clone())
+        );
+
+        // An archived decoder is found by its digest; an encoder file or a file without a
+        // sidecar beside it is passed over.
+        let arch = archive_dir(dir.path());
+        let old = write_shipped(&arch, "2026-11", |j| j["note"] = "last month".into());
+        std::fs::write(arch.join("stray.bpk"), b"no sidecar").expect("write");
+        std::fs::write(arch.join("2026-11.encoder.bpk"), b"").expect("write");
+        let old_digest = {
+            let d = std::fs::read(&old).unwrap();
+            let s = std::fs::read(sidecar_path(&old)).unwrap();
+            digest_of(&d, &s)
+        };
+        let found = find(Some(dir.path()), 32, &old_digest)
+            .unwrap()
+            .expect("archived");
+        assert_eq!(found.source, Source::File(old.clone()));
+        let m = found.load(&Device::flex()).expect("load");
+        assert_eq!(m.digest(), old_digest);
+        // Not for another length.
+        assert_eq!(find(Some(dir.path()), 64, &old_digest).unwrap(), None);
+
+        // A file changed after it was found is refused rather than read as another decoder.
+        std::fs::write(sidecar_path(&old), b"{\"format\":\"splatmark-decoder/1\"}").unwrap();
+        assert!(matches!(
+            found.load(&Device::flex()),
+            Err(WeightsError::Json { .. } | WeightsError::Mismatch(_))
+        ));
+    }
+}
