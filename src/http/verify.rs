@@ -5,7 +5,8 @@
 //! (`decoder::registry`), through its asset's matched head and relative to its asset reference
 //! when the job registered them, with p-values corrected for the number of candidates tested.
 //! A registration whose decoder the server does not hold is not tested but listed
-//! (`untestable`); when it is the only one, the answer is 409.
+//! (`untestable`); when the dispute names an asset and none of its watermarks can be tested, the
+//! answer is 409.
 
 use std::collections::BTreeMap;
 use std::sync::atomic::Ordering;
@@ -279,7 +280,8 @@ pub async fn verify(
                 None => missing.push((r.asset_id, r.decoder.unwrap_or_default())),
             }
         }
-        if candidates.is_empty() && !missing.is_empty() {
+        // Asked about one asset whose every watermark this server cannot read: say so.
+        if asset_id.is_some() && candidates.is_empty() && !missing.is_empty() {
             let d = &missing[0].1;
             return Err(ApiError::conflict(format!(
                 "the watermark was written with decoder {}…, which this server does not hold; \
