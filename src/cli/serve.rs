@@ -1,4 +1,5 @@
-//! `splatmark serve` (the service) and `splatmark keys create` (API keys from the shell).
+//! `splatmark serve` (the service), `splatmark keys create` (API keys from the shell), `keys
+//! rotate-master` and `keys decoders` (which decoders the registered watermarks need).
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -108,6 +109,14 @@ pub(crate) enum KeysCommand {
         #[command(flatten)]
         serve: ServeArgs,
     },
+    /// List the decoders the registered watermarks were written for, how many keys name each
+    /// and where this server finds it (JSON on stdout). Exits with an error when some decoder is
+    /// not held: copy its files into the weights folder's archive/ (weights/README.md). Run it
+    /// after replacing a decoder or upgrading.
+    Decoders {
+        #[command(flatten)]
+        serve: ServeArgs,
+    },
     /// Re-seal every secret under a fresh master key, atomically, with the service stopped.
     /// The new key is written next to the old one first (`<key file>.new`, 0600), then the
     /// database is re-sealed in one transaction, then the new file replaces the old one; with
@@ -128,6 +137,7 @@ pub(crate) fn keys_cmd(c: &KeysCommand) -> Result<()> {
             new_key_file,
             serve,
         } => return rotate_master_cmd(new_key_file.as_deref(), serve),
+        KeysCommand::Decoders { serve } => return decoders_cmd(serve),
     };
     let scopes = scope
         .iter()
@@ -158,6 +168,43 @@ pub(crate) fn keys_cmd(c: &KeysCommand) -> Result<()> {
         println!("{token}");
         Ok(())
     })
+}
+
+fn decoders_cmd(serve: &ServeArgs) -> Result<()> {
+    let cfg = serve.config()?;
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?;
+    let regs = rt.block_on(async {
+        let store = Store::open_with_blobs(
+            &cfg.data_dir,
+            &cfg.database(),
+            &cfg.blobs(),
+            crate::app::master_key(&cfg)?,
+        )
+        .await?;
+        anyhow::Ok(store.registrations().await?)
+    })?;
+    let rows = crate::decoder::registry::survey(
+        cfg.weights_dir.as_deref(),
+        regs.iter().map(|r| (r.key.bits(), r.decoder.as_deref())),
+    )?;
+    println!(
+        "{}",
+        serde_json::to_string_pretty(&serde_json::json!({ "decoders": rows }))?
+    );
+    let missing: usize = rows
+        .iter()
+        .filter(|r| r.held.is_none())
+        .map(|r| r.keys)
+        .sum();
+    if missing > 0 {
+        anyhow::bail!(
+            "{missing} registered watermark(s) name a decoder this server does not hold: put its \
+             files in the weights folder's archive/ (weights/README.md)"
+        );
+    }
+    Ok(())
 }
 
 /// Flags of `backup`.

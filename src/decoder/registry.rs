@@ -176,6 +176,53 @@ pub fn find(
     Ok(None)
 }
 
+/// The decoders a set of registered keys need, and whether this server holds each.
+#[derive(Clone, Debug, PartialEq, Eq, serde::Serialize)]
+pub struct InUse {
+    pub bits: usize,
+    /// The digest the keys name; `None` for keys registered before digests were recorded
+    /// (read with the current decoder).
+    pub digest: Option<String>,
+    /// How many keys name it.
+    pub keys: usize,
+    /// Where this server finds it: `shipped`, a file's path, or `None` when it holds none.
+    pub held: Option<String>,
+    /// Whether it is the decoder new jobs of its length use.
+    pub current: bool,
+}
+
+/// Groups keys (their length and recorded digest) by decoder and looks each one up (module
+/// docs); sorted by length, then digest.
+pub fn survey<'a>(
+    weights_dir: Option<&Path>,
+    keys: impl IntoIterator<Item = (usize, Option<&'a str>)>,
+) -> Result<Vec<InUse>, WeightsError> {
+    let mut counts: std::collections::BTreeMap<(usize, Option<&str>), usize> = Default::default();
+    for k in keys {
+        *counts.entry(k).or_default() += 1;
+    }
+    counts
+        .into_iter()
+        .map(|((bits, digest), keys)| {
+            let cur = current(weights_dir, bits).ok();
+            let located = match digest {
+                Some(d) => find(weights_dir, bits, d)?,
+                None => cur.clone(),
+            };
+            Ok(InUse {
+                bits,
+                digest: digest.map(str::to_string),
+                keys,
+                held: located.as_ref().map(|l| match &l.source {
+                    Source::Shipped(_) => "shipped".to_string(),
+                    Source::File(p) => p.display().to_string(),
+                }),
+                current: located.is_some_and(|l| cur.is_some_and(|c| c.digest == l.digest)),
+            })
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -243,6 +290,29 @@ mod tests {
         assert_eq!(m.digest(), old_digest);
         // Not for another length.
         assert_eq!(find(Some(dir.path()), 64, &old_digest).unwrap(), None);
+
+        // What the keys need: two keys of the archived decoder, one of the shipped one, one
+        // from before digests were recorded, one of a decoder nowhere to be found.
+        let unknown = "f".repeat(64);
+        let keys = [
+            (32, Some(old_digest.as_str())),
+            (32, Some(shipped.digest.as_str())),
+            (32, None),
+            (32, Some(old_digest.as_str())),
+            (48, Some(unknown.as_str())),
+        ];
+        let s = survey(Some(dir.path()), keys).unwrap();
+        let row = |d: Option<&str>| s.iter().find(|r| r.digest.as_deref() == d).unwrap();
+        assert_eq!(s.len(), 4);
+        assert_eq!(row(Some(&old_digest)).keys, 2);
+        assert_eq!(row(Some(&old_digest)).held, Some(old.display().to_string()));
+        assert!(!row(Some(&old_digest)).current);
+        assert_eq!(row(Some(&shipped.digest)).held.as_deref(), Some("shipped"));
+        assert!(row(None).current && row(None).held.is_some());
+        assert_eq!(
+            (row(Some(&unknown)).held.as_ref(), row(Some(&unknown)).bits),
+            (None, 48)
+        );
 
         // A file changed after it was found is refused rather than read as another decoder.
         std::fs::write(sidecar_path(&old), b"{\"format\":\"splatmark-decoder/1\"}").unwrap();
