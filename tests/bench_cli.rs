@@ -54,6 +54,12 @@ fn the_quick_bench_detects_the_defaults_watermark_on_unseen_views() {
     let run = &report["runs"][0];
     assert_eq!(run["scene"], "donut");
     assert_eq!(run["bits"], 32);
+    // Which decoder the bits were written for: the shipped one.
+    let (dec, _, sidecar) = splatmark::decoder::artifact::shipped_bytes(32).unwrap();
+    assert_eq!(
+        run["decoder"],
+        splatmark::decoder::artifact::digest_of(dec, sidecar)
+    );
     let eval = &run["eval"];
     assert_eq!(eval["fpr"], 1e-6);
     assert!(eval["views"].as_u64().unwrap() >= 4);

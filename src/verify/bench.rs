@@ -261,6 +261,9 @@ impl TargetCheck {
 pub struct QualityRun {
     pub scene: String,
     pub bits: usize,
+    /// The decoder the bits were written for ([`crate::decoder::WatermarkModel::digest`]):
+    /// the shipped one, or `--weights-dir`'s.
+    pub decoder: String,
     pub gaussians: usize,
     pub train_views: usize,
     /// Cameras the finetuning interpolated along the training cameras' path
@@ -591,6 +594,7 @@ pub fn run(
             runs.push(QualityRun {
                 scene: name.clone(),
                 bits,
+                decoder: out.report.decoder.clone(),
                 gaussians: g.len(),
                 train_views: train.len(),
                 path_views: out.report.path_views,
