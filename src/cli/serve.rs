@@ -153,13 +153,7 @@ pub(crate) fn keys_cmd(c: &KeysCommand) -> Result<()> {
         .build()?;
     rt.block_on(async {
         std::fs::create_dir_all(&cfg.data_dir)?;
-        let store = Store::open_with_blobs(
-            &cfg.data_dir,
-            &cfg.database(),
-            &cfg.blobs(),
-            crate::app::master_key(&cfg)?,
-        )
-        .await?;
+        let store = open_store(&cfg).await?;
         let (key, token) = store.create_api_key("cli", name, &scopes).await?;
         eprintln!(
             "created API key {} ({}) with scopes {:?}",
@@ -170,21 +164,23 @@ pub(crate) fn keys_cmd(c: &KeysCommand) -> Result<()> {
     })
 }
 
+/// The service's store as `cfg` names it, opened with its master key.
+async fn open_store(cfg: &Config) -> Result<Store> {
+    Ok(Store::open_with_blobs(
+        &cfg.data_dir,
+        &cfg.database(),
+        &cfg.blobs(),
+        crate::app::master_key(cfg)?,
+    )
+    .await?)
+}
+
 fn decoders_cmd(serve: &ServeArgs) -> Result<()> {
     let cfg = serve.config()?;
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()?;
-    let regs = rt.block_on(async {
-        let store = Store::open_with_blobs(
-            &cfg.data_dir,
-            &cfg.database(),
-            &cfg.blobs(),
-            crate::app::master_key(&cfg)?,
-        )
-        .await?;
-        anyhow::Ok(store.registrations().await?)
-    })?;
+    let regs = rt.block_on(async { anyhow::Ok(open_store(&cfg).await?.registrations().await?) })?;
     let rows = crate::decoder::registry::survey(
         cfg.weights_dir.as_deref(),
         regs.iter().map(|r| (r.key.bits(), r.decoder.as_deref())),
