@@ -11,6 +11,7 @@ use super::{DeviceArg, LimitArgs, ViewArgs, load};
 use crate::decoder::WatermarkModel;
 use crate::decoder::eval::read_images;
 use crate::decoder::projection::ViewProjection;
+use crate::decoder::registry::Pair;
 use crate::decoder::train::DeviceChoice;
 use crate::embed::attribution::write_jsonl;
 use crate::embed::pipeline::{EmbedOptions, Phase, embed, split_views};
@@ -147,23 +148,11 @@ pub(crate) struct EmbedArgs {
     limits: LimitArgs,
 }
 
-fn load_model(m: &ModelArgs, bits: usize, autodiff: bool) -> Result<WatermarkModel> {
-    load_model_on(m, bits, autodiff, DeviceChoice::from(m.device))
-}
-
-fn load_model_on(
-    m: &ModelArgs,
-    bits: usize,
-    autodiff: bool,
-    choice: DeviceChoice,
-) -> Result<WatermarkModel> {
-    let device = choice.device();
-    let device = if autodiff { device.autodiff() } else { device };
-    Ok(WatermarkModel::resolve(
-        m.weights.as_deref(),
-        bits,
-        &device,
-    )?)
+/// The decoders `--weights` names (its coarse decoder beside it, when there is one), else the
+/// shipped ones, on `--device`.
+fn load_pair(m: &ModelArgs, bits: usize) -> Result<Pair> {
+    let device = DeviceChoice::from(m.device).device();
+    Ok(Pair::resolve(m.weights.as_deref(), bits, &device)?)
 }
 
 fn background(v: &[f32]) -> Result<[f32; 3]> {
@@ -210,7 +199,7 @@ pub(crate) fn embed_cmd(a: &EmbedArgs, progress: ProgressMode) -> Result<()> {
     // with them (on a GPU: burn's wgpu runtime on the rasterizer's own device).
     let rasterizer = crate::render::gpu::Rasterizer::open(a.model.device.into())?;
     eprintln!("rasterizer: {}", rasterizer.describe());
-    let model = WatermarkModel::resolve(
+    let decoders = Pair::resolve(
         a.model.weights.as_deref(),
         a.bits,
         &rasterizer.burn_device()?.autodiff(),
@@ -268,13 +257,16 @@ pub(crate) fn embed_cmd(a: &EmbedArgs, progress: ProgressMode) -> Result<()> {
     );
     let every = (opts.finetune.steps / 20).max(1);
     let mut bar = Progress::new(progress);
-    let out = embed(&g, &train, &message, &model, &opts, |p| {
+    let out = embed(&g, &train, &message, &decoders, &opts, |p| {
         report_progress(&mut bar, &p, every);
         std::ops::ControlFlow::Continue(())
     })?;
     bar.finish();
     let r = &out.report;
     let st = &r.timings.steps;
+    if let Some(c) = &r.choice {
+        eprintln!("{}", c.describe());
+    }
     eprintln!(
         "{} carriers + {} compensators (budget B = {}, {} pruned); carriers hold {:.1} % of the watermark gradient; {:.1} s (finetuning {:.1} s: render {:.1}, watermark {:.1}, visual {:.1}, backward {:.1}, update {:.1}{})",
         r.carriers,
@@ -384,15 +376,16 @@ fn report_progress(bar: &mut Progress, p: &crate::embed::pipeline::Progress, eve
     }
 }
 
-/// `model` decoding relative to the asset when `report` (an embedding report) carries reference
-/// logits (and through its view projection when it carries one); unchanged without a report or
-/// without either in it. An error when the report names another decoder than `model`.
+/// The decoder a report's bits were written for, out of `decoders` (the main one without a
+/// report, or when the report predates decoder digests), decoding relative to the asset when
+/// the report carries reference logits (and through its view projection when it carries one).
+/// An error when the report names a decoder that is not among `decoders`.
 pub(crate) fn with_report_reference(
-    model: WatermarkModel,
+    decoders: Pair,
     report: Option<&Path>,
 ) -> Result<WatermarkModel> {
     let Some(p) = report else {
-        return Ok(model);
+        return Ok(decoders.main);
     };
     let text = std::fs::read(p).with_context(|| format!("cannot read {}", p.display()))?;
     let r: serde_json::Value =
@@ -405,6 +398,41 @@ pub(crate) fn with_report_reference(
     let projection: Option<ViewProjection> =
         serde_json::from_value(r["view_projection"].clone())
             .with_context(|| format!("{}: view_projection", p.display()))?;
+    // The lengths first (every decoder of the pair reads the same number of bits)…
+    let bits = decoders.main.bits();
+    if let Some(v) = &projection
+        && v.head.is_some()
+        && v.head_bits() != bits
+    {
+        bail!(
+            "{}: matched head for {} bits, the message has {bits}",
+            p.display(),
+            v.head_bits()
+        );
+    }
+    if let Some(z) = &reference
+        && z.len() != bits
+    {
+        bail!(
+            "{}: reference for {} bits, the message has {bits}",
+            p.display(),
+            z.len()
+        );
+    }
+    // …then the decoder: the bits were written for one; another reads them as noise.
+    let model = match r.get("decoder").and_then(|d| d.as_str()) {
+        None => decoders.main,
+        Some(d) => match decoders.by_digest(d) {
+            Some(m) => m.clone(),
+            None => bail!(
+                "{}: the watermark was written for decoder {}…, these weights are decoder {}… \
+                 (pass the weights it was embedded with: --weights FILE)",
+                p.display(),
+                crate::decoder::artifact::short_digest(d),
+                crate::decoder::artifact::short_digest(&decoders.main.digest())
+            ),
+        },
+    };
     let model = match projection {
         Some(v) if v.features() != model.decoder.feature_count() => bail!(
             "{}: view projection over {} features, the decoder pools {}",
@@ -412,35 +440,10 @@ pub(crate) fn with_report_reference(
             v.features(),
             model.decoder.feature_count()
         ),
-        Some(v) if v.head.is_some() && v.head_bits() != model.bits() => bail!(
-            "{}: matched head for {} bits, the message has {}",
-            p.display(),
-            v.head_bits(),
-            model.bits()
-        ),
         Some(v) => model.with_projection(v),
         None => model,
     };
-    // The bits were written for one decoder; another reads them as noise.
-    if let Some(d) = r.get("decoder").and_then(|d| d.as_str())
-        && d != model.digest()
-    {
-        let ours = model.digest();
-        bail!(
-            "{}: the watermark was written for decoder {}…, these weights are decoder {}… \
-             (pass the weights it was embedded with: --weights FILE)",
-            p.display(),
-            crate::decoder::artifact::short_digest(d),
-            crate::decoder::artifact::short_digest(&ours)
-        );
-    }
     Ok(match reference {
-        Some(z) if z.len() != model.bits() => bail!(
-            "{}: reference for {} bits, the message has {}",
-            p.display(),
-            z.len(),
-            model.bits()
-        ),
         Some(z) => model.with_reference(z),
         None => model,
     })
@@ -450,7 +453,7 @@ pub(crate) fn verify_cmd(a: &VerifyArgs) -> Result<()> {
     let hex = a.message.trim().trim_start_matches("0x");
     let bits = hex.len() * 4;
     let message = parse_hex(hex, bits)?;
-    let model = with_report_reference(load_model(&a.model, bits, false)?, a.report.as_deref())?;
+    let model = with_report_reference(load_pair(&a.model, bits)?, a.report.as_deref())?;
     let images = read_images(&a.images)?;
     let device = DeviceChoice::from(a.model.device).device();
     let report = crate::decoder::eval::decode_images(&model, &images, &device);
@@ -522,10 +525,7 @@ pub(crate) fn eval_scene_cmd(a: &EvalSceneArgs) -> Result<()> {
     if held.is_empty() {
         bail!("no held-out views; use more views or --holdout-every 1");
     }
-    let model = with_report_reference(
-        load_model(&a.model, message.len(), false)?,
-        a.report.as_deref(),
-    )?;
+    let model = with_report_reference(load_pair(&a.model, message.len())?, a.report.as_deref())?;
     let settings = EvalSettings {
         render: RenderOptions {
             background: background(&a.background)?,

@@ -3,6 +3,7 @@
 use crate::decoder::WatermarkModel;
 use crate::decoder::data::{ImageSet, Split};
 use crate::decoder::eval::{self, EvalOptions};
+use crate::decoder::registry::Pair;
 use crate::decoder::train::{
     self, DeviceChoice, EncoderKind, RunOptions, TrainConfig, WhiteningChoice,
 };
@@ -671,8 +672,9 @@ fn eval_cmd(a: &EvalArgs) -> Result<()> {
 }
 
 fn decode_cmd(a: &DecodeArgs) -> Result<()> {
-    let (model, device) = load_model(&a.weights)?;
-    let model = embed::with_report_reference(model, a.report.as_deref())?;
+    let device = DeviceChoice::from(a.weights.device).device();
+    let decoders = Pair::resolve(a.weights.weights.as_deref(), a.weights.bits, &device)?;
+    let model = embed::with_report_reference(decoders, a.report.as_deref())?;
     let images = eval::read_images(&a.images)?;
     let report = eval::decode_images(&model, &images, &device);
     println!("{}", serde_json::to_string_pretty(&report)?);

@@ -8,26 +8,39 @@
 //! it with the key (`store::keys`, migration 0006); a dispute reads each candidate with the
 //! decoder of that digest, found among
 //!
-//! 1. the **current** decoder for its length — `weights_dir/decoder-{bits}.bpk` when the server
-//!    is configured with one, else the one shipped in the binary (what new jobs use);
-//! 2. the **shipped** one, when the weights folder overrides it;
+//! 1. the **current** decoders for its length — `weights_dir/decoder-{bits}.bpk` (and
+//!    `decoder-{bits}.coarse.bpk` beside it, when there is one) when the server is configured
+//!    with one, else the ones shipped in the binary (what new jobs use: [`Pair`]);
+//! 2. the **shipped** ones, when the weights folder overrides them;
 //! 3. the **archive**: every `*.bpk` artifact (with its `.json` sidecar) under
 //!    `weights_dir/archive/`, where an operator keeps the decoders of earlier releases or
 //!    earlier weights folders so that their assets stay verifiable.
 //!
 //! A digest found nowhere is an answer of its own ([`find`] → `None`), never a silent misread.
+//!
+//! # The pair a job writes for
+//!
+//! A length may have two current decoders: the **main** one and a **coarse** one (a lower colour
+//! frequency: bolder, more robust changes that cost more of the fidelity budget). The embedding
+//! writes for the main one and restarts with the coarse one when the asset leaves the budget
+//! free (`embed::pipeline`, `EmbedOptions::coarse_margin_db`); the report and the key name the
+//! one it chose. The coarse decoder of an artifact `P` is [`coarse_path`]`(P)`; the shipped
+//! ones are `weights/decoder-{bits}.coarse.*` (32 bits only).
 
 use std::path::{Path, PathBuf};
 
 use burn::tensor::Device;
 
-use super::artifact::{WatermarkModel, WeightsError, digest_of, shipped_bytes, sidecar_path};
+use super::artifact::{
+    WatermarkModel, WeightsError, coarse_path, digest_of, shipped_bytes, shipped_coarse_bytes,
+    sidecar_path,
+};
 
 /// Where a decoder's files are.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum Source {
-    /// Compiled into the binary for this many bits.
-    Shipped(usize),
+    /// Compiled into the binary for this many bits: the main decoder, or the coarse one.
+    Shipped { bits: usize, coarse: bool },
     /// An artifact on disk (decoder weights; the sidecar beside it).
     File(PathBuf),
 }
@@ -45,7 +58,14 @@ impl Located {
     /// another number of bits.
     pub fn load(&self, device: &Device) -> Result<WatermarkModel, WeightsError> {
         let m = match &self.source {
-            Source::Shipped(bits) => WatermarkModel::shipped(*bits, device)?,
+            Source::Shipped {
+                bits,
+                coarse: false,
+            } => WatermarkModel::shipped(*bits, device)?,
+            Source::Shipped { bits, coarse: true } => {
+                WatermarkModel::shipped_coarse(*bits, device)?
+                    .ok_or(WeightsError::NoShippedWeights { bits: *bits })?
+            }
             Source::File(p) => WatermarkModel::load(p, device)?,
         };
         if m.digest() != self.digest || m.bits() != self.bits {
@@ -105,30 +125,114 @@ fn locate_shipped(bits: usize) -> Option<Located> {
     Some(Located {
         bits,
         digest: digest_of(decoder, sidecar),
-        source: Source::Shipped(bits),
+        source: Source::Shipped {
+            bits,
+            coarse: false,
+        },
     })
 }
 
-/// The decoder new jobs of `bits` bits use: the weights folder's, else the shipped one.
+/// The shipped coarse decoder for `bits` (`None` when none is shipped for that length).
+fn locate_shipped_coarse(bits: usize) -> Option<Located> {
+    let (decoder, sidecar) = shipped_coarse_bytes(bits)?;
+    Some(Located {
+        bits,
+        digest: digest_of(decoder, sidecar),
+        source: Source::Shipped { bits, coarse: true },
+    })
+}
+
+/// The artifact at `p`, which its name says reads `bits` bits.
+fn locate_named(p: &Path, bits: usize) -> Result<Located, WeightsError> {
+    match locate_file(p)? {
+        Some(l) if l.bits == bits => Ok(l),
+        Some(l) => Err(WeightsError::Mismatch(format!(
+            "{} decodes {} bits, its name says {bits}",
+            p.display(),
+            l.bits
+        ))),
+        None => Err(WeightsError::Mismatch(format!(
+            "{}: the sidecar does not say how many bits it reads",
+            p.display()
+        ))),
+    }
+}
+
+/// The decoder new jobs of `bits` bits use first: the weights folder's, else the shipped one.
 pub fn current(weights_dir: Option<&Path>, bits: usize) -> Result<Located, WeightsError> {
     match folder_artifact(weights_dir, bits) {
-        Some(p) => match locate_file(&p)? {
-            Some(l) if l.bits == bits => Ok(l),
-            Some(l) => Err(WeightsError::Mismatch(format!(
-                "{} decodes {} bits, its name says {bits}",
-                p.display(),
-                l.bits
-            ))),
-            None => Err(WeightsError::Mismatch(format!(
-                "{}: the sidecar does not say how many bits it reads",
-                p.display()
-            ))),
-        },
+        Some(p) => locate_named(&p, bits),
         None => locate_shipped(bits).ok_or(if super::artifact::shipped_bytes(bits).is_some() {
             WeightsError::NotShipped { bits }
         } else {
             WeightsError::NoShippedWeights { bits }
         }),
+    }
+}
+
+/// The coarse decoder new jobs of `bits` bits may switch to (module docs): beside the weights
+/// folder's decoder when the folder holds one (`None` when it holds no coarse one: an
+/// operator's decoder is never paired with the shipped coarse one), else the shipped one.
+pub fn current_coarse(
+    weights_dir: Option<&Path>,
+    bits: usize,
+) -> Result<Option<Located>, WeightsError> {
+    match folder_artifact(weights_dir, bits) {
+        Some(p) => {
+            let c = coarse_path(&p);
+            if c.is_file() {
+                locate_named(&c, bits).map(Some)
+            } else {
+                Ok(None)
+            }
+        }
+        None => Ok(locate_shipped_coarse(bits)),
+    }
+}
+
+/// The decoders an embedding of `bits` bits writes for: the main one and, when there is one,
+/// the coarse one it switches to for assets that leave the fidelity budget free
+/// (`embed::pipeline::embed`).
+#[derive(Clone, Debug)]
+pub struct Pair {
+    pub main: WatermarkModel,
+    pub coarse: Option<WatermarkModel>,
+}
+
+impl Pair {
+    /// One decoder and no alternative (the paper's recipe; `--weights` files without a coarse
+    /// decoder beside them).
+    pub fn single(main: WatermarkModel) -> Self {
+        Self { main, coarse: None }
+    }
+
+    /// The decoders for `bits` bits from the artifact `main` (its [`coarse_path`] beside it,
+    /// when there is one), or the shipped ones when `main` is `None`.
+    pub fn resolve(
+        main: Option<&Path>,
+        bits: usize,
+        device: &Device,
+    ) -> Result<Self, WeightsError> {
+        let m = WatermarkModel::resolve(main, bits, device)?;
+        let coarse = match main {
+            Some(p) => {
+                let c = coarse_path(p);
+                if c.is_file() {
+                    Some(WatermarkModel::resolve(Some(&c), bits, device)?)
+                } else {
+                    None
+                }
+            }
+            None => WatermarkModel::shipped_coarse(bits, device)?,
+        };
+        Ok(Self { main: m, coarse })
+    }
+
+    /// The decoder of this pair whose digest is `digest` (an embedding report's `decoder`).
+    pub fn by_digest(&self, digest: &str) -> Option<&WatermarkModel> {
+        std::iter::once(&self.main)
+            .chain(&self.coarse)
+            .find(|m| m.digest() == digest)
     }
 }
 
@@ -146,7 +250,16 @@ pub fn find(
     {
         return Ok(Some(l));
     }
-    if let Some(l) = locate_shipped(bits).filter(|l| l.digest == digest) {
+    if let Ok(Some(l)) = current_coarse(weights_dir, bits)
+        && l.digest == digest
+    {
+        return Ok(Some(l));
+    }
+    if let Some(l) = locate_shipped(bits)
+        .into_iter()
+        .chain(locate_shipped_coarse(bits))
+        .find(|l| l.digest == digest)
+    {
         return Ok(Some(l));
     }
     let Some(dir) = weights_dir.map(archive_dir).filter(|d| d.is_dir()) else {
@@ -187,7 +300,8 @@ pub struct InUse {
     pub keys: usize,
     /// Where this server finds it: `shipped`, a file's path, or `None` when it holds none.
     pub held: Option<String>,
-    /// Whether it is the decoder new jobs of its length use.
+    /// Whether it is one of the decoders new jobs of its length use (the main or the coarse
+    /// one).
     pub current: bool,
 }
 
@@ -205,19 +319,23 @@ pub fn survey<'a>(
         .into_iter()
         .map(|((bits, digest), keys)| {
             let cur = current(weights_dir, bits).ok();
+            let cur_coarse = current_coarse(weights_dir, bits).ok().flatten();
             let located = match digest {
                 Some(d) => find(weights_dir, bits, d)?,
                 None => cur.clone(),
             };
+            let is_current =
+                |l: &Located| cur.iter().chain(&cur_coarse).any(|c| c.digest == l.digest);
             Ok(InUse {
                 bits,
                 digest: digest.map(str::to_string),
                 keys,
                 held: located.as_ref().map(|l| match &l.source {
-                    Source::Shipped(_) => "shipped".to_string(),
+                    Source::Shipped { coarse: false, .. } => "shipped".to_string(),
+                    Source::Shipped { coarse: true, .. } => "shipped (coarse)".to_string(),
                     Source::File(p) => p.display().to_string(),
                 }),
-                current: located.is_some_and(|l| cur.is_some_and(|c| c.digest == l.digest)),
+                current: located.as_ref().is_some_and(is_current),
             })
         })
         .collect()
@@ -243,7 +361,13 @@ mod tests {
     #[test]
     fn a_digest_is_found_where_the_decoder_is_and_nowhere_else() {
         let shipped = current(None, 32).expect("shipped 32");
-        assert_eq!(shipped.source, Source::Shipped(32));
+        assert_eq!(
+            shipped.source,
+            Source::Shipped {
+                bits: 32,
+                coarse: false
+            }
+        );
         assert_eq!(shipped.digest.len(), 64);
         // The loaded model knows its own digest.
         let m = shipped.load(&Device::flex()).expect("load");
@@ -320,5 +444,74 @@ mod tests {
             found.load(&Device::flex()),
             Err(WeightsError::Json { .. } | WeightsError::Mismatch(_))
         ));
+    }
+
+    #[test]
+    fn the_coarse_decoder_pairs_with_its_main_one_and_is_found_by_digest() {
+        let device = Device::flex();
+        let main = current(None, 32).expect("shipped 32");
+        let coarse = current_coarse(None, 32)
+            .expect("readable")
+            .expect("a coarse decoder is shipped for 32 bits");
+        assert_eq!(
+            coarse.source,
+            Source::Shipped {
+                bits: 32,
+                coarse: true
+            }
+        );
+        assert_ne!(coarse.digest, main.digest);
+        assert_eq!(
+            find(None, 32, &coarse.digest).unwrap(),
+            Some(coarse.clone())
+        );
+        assert_eq!(coarse.load(&device).expect("load").digest(), coarse.digest);
+        // None for the lengths it was not measured at.
+        assert_eq!(current_coarse(None, 48).unwrap(), None);
+        let pair = Pair::resolve(None, 32, &device).expect("pair");
+        assert_eq!(pair.main.digest(), main.digest);
+        let c = pair.coarse.as_ref().expect("coarse");
+        assert_eq!(c.digest(), coarse.digest);
+        assert_eq!(
+            pair.by_digest(&coarse.digest).map(|m| m.digest()),
+            Some(coarse.digest.clone())
+        );
+        assert!(pair.by_digest(&"0".repeat(64)).is_none());
+        assert!(Pair::resolve(None, 48, &device).unwrap().coarse.is_none());
+
+        // A weights folder with its own main decoder and none beside it: no coarse one (the
+        // shipped coarse decoder is not paired with an operator's), though the shipped one is
+        // still found for the assets written with it.
+        let dir = tempfile::tempdir().expect("tempdir");
+        let own = write_shipped(dir.path(), "decoder-32", |j| j["note"] = "ours".into());
+        assert_eq!(current_coarse(Some(dir.path()), 32).unwrap(), None);
+        assert!(
+            Pair::resolve(Some(&own), 32, &device)
+                .unwrap()
+                .coarse
+                .is_none()
+        );
+        assert_eq!(
+            find(Some(dir.path()), 32, &coarse.digest).unwrap(),
+            Some(coarse.clone())
+        );
+        // With one beside it, that one.
+        let own_coarse = write_shipped(dir.path(), "decoder-32.coarse", |j| {
+            j["note"] = "ours, coarse".into()
+        });
+        assert_eq!(own_coarse, coarse_path(&own));
+        let cur = current_coarse(Some(dir.path()), 32)
+            .unwrap()
+            .expect("folder's coarse");
+        assert_eq!(cur.source, Source::File(own_coarse.clone()));
+        let pair = Pair::resolve(Some(&own), 32, &device).unwrap();
+        assert_eq!(
+            pair.coarse.as_ref().map(|m| m.digest()),
+            Some(cur.digest.clone())
+        );
+        // Both count as current for the keys' survey.
+        let s = survey(Some(dir.path()), [(32, Some(cur.digest.as_str()))]).unwrap();
+        assert!(s[0].current);
+        assert_eq!(s[0].held, Some(own_coarse.display().to_string()));
     }
 }

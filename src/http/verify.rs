@@ -312,8 +312,8 @@ pub async fn verify(
                 features: r.features,
             };
             let hex = d.plain_hex();
-            // Keyed by length for the server's current decoders (what a new job would write
-            // for), by `length@digest` for older ones.
+            // Keyed by length for the server's current main decoder (what a new job writes
+            // for first), by `length@digest` for the others (the coarse one, older ones).
             let current = registry::current(weights_dir, l.bits).is_ok_and(|c| c.digest == *digest);
             let key = if current {
                 l.bits.to_string()

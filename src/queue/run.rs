@@ -6,7 +6,7 @@ use std::ops::ControlFlow;
 use std::path::Path;
 
 use super::spec::JobSpec;
-use crate::decoder::WatermarkModel;
+use crate::decoder::registry::Pair;
 use crate::embed::attribution::AttributionRecord;
 use crate::embed::pipeline::{EmbedError, EmbedReport, Progress, embed, split_views};
 use crate::scene::camera::{read_cameras_bytes, resize_all};
@@ -81,7 +81,7 @@ pub fn execute(
     cameras: Option<&Path>,
     spec: &JobSpec,
     message: &[bool],
-    model: &WatermarkModel,
+    decoders: &Pair,
     limits: &Limits,
     out: &mut impl Write,
     progress: impl FnMut(Progress) -> ControlFlow<()>,
@@ -96,7 +96,7 @@ pub fn execute(
             spec.holdout_every
         )));
     }
-    let e = embed(&g, &train, message, model, &spec.embed, progress).map_err(JobError::Embed)?;
+    let e = embed(&g, &train, message, decoders, &spec.embed, progress).map_err(JobError::Embed)?;
     write_ply(&e.scene, &mut *out).map_err(|e| JobError::Write(e.to_string()))?;
     out.flush().map_err(|e| JobError::Write(e.to_string()))?;
     let mut report = stored_report(&e.report).map_err(|e| JobError::Write(e.to_string()))?;

@@ -77,6 +77,8 @@ impl JobOptions {
         }
         crate::embed::pipeline::check_view_scales(&embed.view_scales)
             .map_err(|e| format!("options.embed.{e}"))?;
+        crate::embed::pipeline::check_coarse_margin(embed.coarse_margin_db)
+            .map_err(|e| format!("options.embed.{e}"))?;
         if embed.view_scales.len() > 4 {
             return Err("options.embed.view_scales: at most 4 factors".into());
         }
@@ -236,6 +238,10 @@ mod tests {
             ),
             (json!({"embed": {"view_scales": [1.0, 9.0]}}), "view_scales"),
             (json!({"embed": {"view_scales": []}}), "view_scales"),
+            (
+                json!({"embed": {"coarse_margin_db": -2.0}}),
+                "coarse_margin_db",
+            ),
             (
                 json!({"embed": {"projection": {"rank": 16, "matched": false}}}),
                 "projection.rank",

@@ -18,7 +18,7 @@ use tracing::Instrument;
 use super::run::{JobError, execute};
 use super::spec::JobSpec;
 use crate::config::Config;
-use crate::decoder::WatermarkModel;
+use crate::decoder::registry::Pair;
 use crate::embed::pipeline::{EmbedError, Phase, Progress};
 use crate::render::gpu::Rasterizer;
 use crate::scene::Limits;
@@ -246,7 +246,7 @@ async fn run_job(ctx: &Ctx, w: &WorkerSpec, c: Claimed) {
         let r = (|| {
             let bytes = std::fs::read(&scene_path)
                 .map_err(|e| JobError::Scene(crate::scene::SceneError::IoPlain(e)))?;
-            let model = WatermarkModel::resolve(weights.as_deref(), bits, &device.autodiff())
+            let decoders = Pair::resolve(weights.as_deref(), bits, &device.autodiff())
                 .map_err(|e| JobError::Decoder(e.to_string()))?;
             let mut out = std::io::BufWriter::new(tmp.as_file_mut());
             let mut started = None;
@@ -256,7 +256,7 @@ async fn run_job(ctx: &Ctx, w: &WorkerSpec, c: Claimed) {
                 cams_path.as_deref(),
                 &spec,
                 &message,
-                &model,
+                &decoders,
                 &limits,
                 &mut out,
                 |p| {

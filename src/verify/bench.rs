@@ -40,6 +40,7 @@ use std::time::Instant;
 use serde::Serialize;
 
 use crate::decoder::WatermarkModel;
+use crate::decoder::registry::Pair;
 use crate::embed::pipeline::{EmbedOptions, embed, split_views};
 use crate::scene::camera::{read_cameras, resize_all};
 use crate::scene::format::read_scene;
@@ -277,6 +278,11 @@ pub struct QualityRun {
     pub steps: usize,
     /// What the schedule's stretch measured and decided (`finetune.stretch_bce`).
     pub stretch: Option<crate::embed::finetune::StretchCheck>,
+    /// How the decoder was chosen (`embed.coarse_margin_db`, when a coarse decoder was there):
+    /// the main decoder's PSNR at the check and whether the run switched (`decoder` then names
+    /// the coarse one).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub choice: Option<crate::embed::pipeline::DecoderChoice>,
     /// The embedding's seconds per phase (targets, planning, calibration, finetuning).
     pub phases: crate::embed::pipeline::Timings,
     pub eval_s: f64,
@@ -430,10 +436,21 @@ pub(crate) fn bench_model(
     weights_dir: Option<&Path>,
     bits: usize,
     device: &burn::tensor::Device,
+) -> Result<Pair, BenchError> {
+    let main = weights_dir.map(|d| d.join(format!("decoder-{bits}.bpk")));
+    Ok(Pair::resolve(main.as_deref(), bits, device)?)
+}
+
+/// The decoder of `decoders` the report's bits were written for.
+pub(crate) fn written_for(
+    decoders: &Pair,
+    report: &crate::embed::pipeline::EmbedReport,
 ) -> Result<WatermarkModel, BenchError> {
-    Ok(match weights_dir {
-        Some(d) => WatermarkModel::load(&d.join(format!("decoder-{bits}.bpk")), device)?,
-        None => WatermarkModel::shipped(bits, device)?,
+    decoders.by_digest(&report.decoder).cloned().ok_or_else(|| {
+        BenchError::Weights(crate::decoder::WeightsError::Mismatch(format!(
+            "the embedding wrote for decoder {}, which is not among the bench's",
+            crate::decoder::artifact::short_digest(&report.decoder)
+        )))
     })
 }
 
@@ -530,7 +547,7 @@ pub fn run(
                 Ok(v) => v.clone(),
                 Err(scene) => views(scene, &g, opts, bits)?,
             };
-            let model = bench_model(opts.weights_dir.as_deref(), bits, device)?;
+            let decoders = bench_model(opts.weights_dir.as_deref(), bits, device)?;
             let payload = bench_message(opts.seed, name, bits);
             log.line(&format!(
                 "{name}, {bits} bits: embedding over {} training views ({} Gaussians, {}×{})…",
@@ -542,7 +559,7 @@ pub fn run(
             let t0 = Instant::now();
             let mut last = 0;
             let what = format!("{name} {bits}");
-            let out = embed(&g, &train, &payload, &model, &opts.embed, |p| {
+            let out = embed(&g, &train, &payload, &decoders, &opts.embed, |p| {
                 // The finetuning's steps; the phases before it as phases without steps.
                 let phase = format!("{what} {}", format!("{:?}", p.phase).to_lowercase());
                 let total = if p.phase == crate::embed::pipeline::Phase::Finetune {
@@ -551,6 +568,10 @@ pub fn run(
                     0
                 };
                 log.step(&phase, p.step, total);
+                if p.phase == crate::embed::pipeline::Phase::Calibrate {
+                    // (again after a switch to the coarse decoder: its steps count from 1)
+                    last = 0;
+                }
                 if p.total > 0 && p.step >= last + (p.total / 10).max(1) {
                     last = p.step;
                     if let Some(s) = p.log {
@@ -586,8 +607,12 @@ pub fn run(
                 fpr: opts.fpr,
                 seed: opts.seed,
             };
-            // Decoded as a dispute would: relative to the asset when the embedding measured it.
-            let model = as_disputed(model, &out.report);
+            if let Some(c) = &out.report.choice {
+                log.line(&format!("  {}", c.describe()));
+            }
+            // Decoded as a dispute would: with the decoder the bits were written for, relative
+            // to the asset when the embedding measured it.
+            let model = as_disputed(written_for(&decoders, &out.report)?, &out.report);
             let eval = evaluate_scene(&g, &out.scene, &unseen, &model, &payload, &settings)?;
             let targets = check(&eval, bits);
             let met = targets.iter().all(|t| t.met);
@@ -604,6 +629,7 @@ pub fn run(
                 embed_s,
                 steps: out.report.last_step.map_or(0, |l| l.step),
                 stretch: out.report.stretch,
+                choice: out.report.choice,
                 phases: out.report.timings.clone(),
                 eval_s: t1.elapsed().as_secs_f64(),
                 eval,

@@ -122,6 +122,13 @@ pub fn sidecar_path(out: &Path) -> PathBuf {
     out.with_extension("json")
 }
 
+/// The coarse decoder beside the artifact at `P` (`decoder-32.bpk` → `decoder-32.coarse.bpk`):
+/// the one an embedding writes for when the asset leaves the fidelity budget free
+/// (`embed::pipeline`, `EmbedOptions::coarse_margin_db`; `decoder::registry`).
+pub fn coarse_path(main: &Path) -> PathBuf {
+    main.with_extension("coarse.bpk")
+}
+
 /// The encoder path of an artifact: `P` with extension `.encoder.bpk`.
 pub fn encoder_path(out: &Path) -> PathBuf {
     out.with_extension("encoder.bpk")
@@ -190,6 +197,28 @@ pub fn shipped_bytes(bits: usize) -> Option<(&'static [u8], &'static [u8], &'sta
         32 => Some(shipped!("32")),
         48 => Some(shipped!("48")),
         64 => Some(shipped!("64")),
+        _ => None,
+    }
+}
+
+/// The shipped coarse decoder's `(decoder, sidecar)` bytes for `bits`
+/// (`weights/decoder-{bits}.coarse.*`: the colour-Fourier decoder at colour scale 12, for
+/// assets that leave the fidelity budget free). Shipped for 32 bits only: the only length it
+/// was measured at (docs/RESULTS.md).
+pub fn shipped_coarse_bytes(bits: usize) -> Option<(&'static [u8], &'static [u8])> {
+    match bits {
+        32 => Some((
+            include_bytes!(concat!(
+                env!("CARGO_MANIFEST_DIR"),
+                "/weights/decoder-32.coarse.bpk"
+            ))
+            .as_slice(),
+            include_bytes!(concat!(
+                env!("CARGO_MANIFEST_DIR"),
+                "/weights/decoder-32.coarse.json"
+            ))
+            .as_slice(),
+        )),
         _ => None,
     }
 }
@@ -356,6 +385,23 @@ impl WatermarkModel {
             )));
         }
         Ok(model)
+    }
+
+    /// The coarse decoder shipped in the binary for `bits` ([`shipped_coarse_bytes`]), `None`
+    /// when none is shipped for that length.
+    pub fn shipped_coarse(bits: usize, device: &Device) -> Result<Option<Self>, WeightsError> {
+        let Some((decoder, sidecar)) = shipped_coarse_bytes(bits) else {
+            return Ok(None);
+        };
+        let origin = PathBuf::from(format!("<shipped>/weights/decoder-{bits}.coarse.bpk"));
+        let model = Self::from_bytes(decoder, None, sidecar, &origin, device)?;
+        if model.bits() != bits {
+            return Err(WeightsError::Mismatch(format!(
+                "the shipped coarse weights for {bits} bits decode {} bits",
+                model.bits()
+            )));
+        }
+        Ok(Some(model))
     }
 
     /// `--weights FILE` if given, else the shipped weights; checks the message length.

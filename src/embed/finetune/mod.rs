@@ -735,17 +735,23 @@ fn decode_views(
 /// features computed on the host (empty when burn computed them).
 type Decoded = (Vec<Tensor<2>>, Vec<Tensor<2>>, Tensor<1>, Vec<HostFeatures>);
 
-/// The step after which `stretch_bce` decides: three tenths of `steps` (where the EOT ramp
+/// The step after which `stretch_bce` decides (and the pipeline chooses between its
+/// decoders, `EmbedOptions::coarse_margin_db`): three tenths of `steps` (where the EOT ramp
 /// of the defaults completes).
-fn stretch_step(cfg: &FinetuneConfig) -> usize {
+pub(crate) fn stretch_step(cfg: &FinetuneConfig) -> usize {
     (cfg.steps * 3 / 10).max(1)
+}
+
+/// How many steps up to [`stretch_step`] the checks average: the last tenth of `steps`.
+pub(crate) fn check_window(cfg: &FinetuneConfig) -> usize {
+    (cfg.steps / 10).max(1)
 }
 
 /// Whether the schedule stretches to twice `steps` (`stretch_bce`): the training views' clean
 /// watermark loss, averaged over the last tenth of `steps` (`log` is not empty), is above the
 /// threshold.
 fn stretch_check(cfg: &FinetuneConfig, log: &[StepLog]) -> StretchCheck {
-    let window = &log[log.len() - (cfg.steps / 10).clamp(1, log.len())..];
+    let window = &log[log.len() - check_window(cfg).min(log.len())..];
     let mean = window.iter().map(|s| f64::from(s.bce_clean)).sum::<f64>() / window.len() as f64;
     StretchCheck {
         step: log.len(),

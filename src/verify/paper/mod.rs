@@ -17,8 +17,8 @@ use std::time::Instant;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
-use super::bench::{BenchError, as_disputed, bench_message, bench_model};
-use crate::decoder::artifact::shipped_bytes;
+use super::bench::{BenchError, as_disputed, bench_message, bench_model, written_for};
+use crate::decoder::artifact::{coarse_path, shipped_bytes, shipped_coarse_bytes};
 use crate::embed::pipeline::{EmbedOptions, embed};
 use crate::embed::sbag::BudgetMode;
 use crate::fit::cache::{FitRecord, fitted};
@@ -243,9 +243,15 @@ fn run_record_path(
     }
     h.update(opts.fpr.to_le_bytes());
     match &opts.weights_dir {
+        // The decoders the run may write for: the main one and its coarse one, if any.
         Some(d) => {
             let p = d.join(format!("decoder-{bits}.bpk"));
-            for f in [p.clone(), p.with_extension("json")] {
+            let c = coarse_path(&p);
+            let mut files = vec![p.clone(), p.with_extension("json")];
+            if c.is_file() {
+                files.extend([c.clone(), c.with_extension("json")]);
+            }
+            for f in files {
                 let bytes = std::fs::read(&f).map_err(|e| BenchError::Input {
                     path: f.clone(),
                     message: e.to_string(),
@@ -255,6 +261,10 @@ fn run_record_path(
         }
         None => {
             if let Some((dec, _, side)) = shipped_bytes(bits) {
+                h.update(dec);
+                h.update(side);
+            }
+            if let Some((dec, side)) = shipped_coarse_bytes(bits) {
                 h.update(dec);
                 h.update(side);
             }
@@ -376,7 +386,7 @@ pub fn run(
                     )),
                 }
             }
-            let model = bench_model(opts.weights_dir.as_deref(), bits, device)?;
+            let decoders = bench_model(opts.weights_dir.as_deref(), bits, device)?;
             let payload = bench_message(seed, name, bits);
             log.line(&format!(
                 "{name}, {variant}, {bits} bits, seed {seed}: embedding over {} training views ({} Gaussians)…",
@@ -386,7 +396,7 @@ pub fn run(
             let t0 = Instant::now();
             let mut last = 0;
             let what = format!("{name} {variant} {bits} s{seed}");
-            let out = embed(&f.scene, &train, &payload, &model, &eo, |p| {
+            let out = embed(&f.scene, &train, &payload, &decoders, &eo, |p| {
                 // The finetuning's steps; the phases before it as phases without steps.
                 let phase = format!("{what} {}", format!("{:?}", p.phase).to_lowercase());
                 let total = if p.phase == crate::embed::pipeline::Phase::Finetune {
@@ -395,6 +405,10 @@ pub fn run(
                     0
                 };
                 log.step(&phase, p.step, total);
+                if p.phase == crate::embed::pipeline::Phase::Calibrate {
+                    // (again after a switch to the coarse decoder: its steps count from 1)
+                    last = 0;
+                }
                 if p.total > 0 && p.step >= last + (p.total / 10).max(1) {
                     last = p.step;
                     if let Some(s) = p.log {
@@ -407,7 +421,7 @@ pub fn run(
                 ControlFlow::Continue(())
             })?;
             let embed_s = t0.elapsed().as_secs_f64();
-            let model = as_disputed(model, &out.report);
+            let model = as_disputed(written_for(&decoders, &out.report)?, &out.report);
             let settings = EvalSettings {
                 render: eo.render_options(),
                 fpr: opts.fpr,
