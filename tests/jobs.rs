@@ -588,6 +588,17 @@ async fn a_real_scene_is_detected_on_views_the_job_never_saw() {
     assert_eq!(v["best"]["asset_id"].as_str().unwrap(), marked_id);
     assert_eq!(v["best"]["reference"], true);
     assert_eq!(v["best"]["matched_head"], true);
+    // The shipped pair: the job chose one of its decoders at the check (reported), and the
+    // dispute read the asset with that one.
+    let meta: Value = t
+        .get(&k.owner, &format!("/v1/assets/{marked_id}"))
+        .await
+        .json()
+        .await
+        .unwrap();
+    eprintln!("donut's decoder: {}", meta["report"]["choice"]);
+    assert!(meta["report"]["choice"]["psnr"].is_number(), "{meta}");
+    assert_eq!(v["best"]["decoder"], meta["report"]["decoder"], "{v}");
     let v0 = t.verify(&k.verifier, &original_views, None).await;
     assert_eq!(v0["detected"], false, "{v0}");
 
@@ -851,4 +862,80 @@ async fn a_gpu_lost_mid_job_fails_the_attempt_and_the_retry_completes_on_the_gpu
         )),
         "{m}"
     );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_written_for_the_coarse_decoder_is_verified_with_it() {
+    // The shipped decoders (no weights folder): the main one and the coarse one. A bound of 10
+    // dB with no margin: the toy scene's training views stay far above it, so at the check
+    // the job restarts for the coarse decoder; its key names that decoder, and the dispute
+    // reads the asset with it.
+    let mut t = TestApp::start_with(|c| c.fpr = 1e-3).await;
+    let k = t.keys().await;
+    let original = object_scene(1500, 1, 4);
+    let r = t.upload(&k.owner, "object.ply", ply_bytes(&original)).await;
+    assert_eq!(r.status(), StatusCode::CREATED);
+    let id = r.json::<Value>().await.unwrap()["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let mut body = small_job("c0ffee42", 300);
+    body["options"]["embed"]["finetune"]["target_psnr"] = json!(10.0);
+    body["options"]["embed"]["coarse_margin_db"] = json!(0.0);
+    let job: Value = t
+        .client
+        .post(t.url(&format!("/v1/assets/{id}/watermark")))
+        .bearer_auth(&k.owner)
+        .json(&body)
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let job = t
+        .wait_job(
+            &k.owner,
+            job["id"].as_str().unwrap(),
+            Duration::from_secs(900),
+        )
+        .await;
+    assert_eq!(job["state"], "done", "{job}");
+    let marked_id = job["result_asset_id"].as_str().unwrap().to_string();
+    let meta: Value = t
+        .get(&k.owner, &format!("/v1/assets/{marked_id}"))
+        .await
+        .json()
+        .await
+        .unwrap();
+    let (dec, side) = splatmark::decoder::artifact::shipped_coarse_bytes(32).unwrap();
+    let coarse = splatmark::decoder::artifact::digest_of(dec, side);
+    assert_eq!(meta["report"]["choice"]["coarse"], true, "{meta}");
+    assert_eq!(meta["report"]["decoder"], coarse.as_str(), "{meta}");
+    let bytes = t
+        .get(&k.owner, &format!("/v1/assets/{marked_id}/file"))
+        .await
+        .bytes()
+        .await
+        .unwrap();
+    let marked = read_scene_bytes(&bytes, Some("ply"), &Limits::default()).unwrap();
+    let spec: JobSpec = serde_json::from_value(job["options"].clone()).unwrap();
+    let views = training_views(&original, &spec);
+    let ro = RenderOptions {
+        background: spec.embed.finetune.background,
+        ..RenderOptions::default()
+    };
+    let imgs = render_views(&marked, &views, &ro).unwrap();
+    let v = t.verify(&k.verifier, &imgs, Some(&marked_id)).await;
+    assert_eq!(v["detected"], true, "{v}");
+    assert_eq!(v["best"]["decoder"], coarse.as_str(), "{v}");
+    // The coarse decoder's bits are shown under `length@digest`; the length alone is the main
+    // decoder's, which new jobs write for first.
+    assert!(
+        v["decoded"][format!("32@{}", &coarse[..12])].is_string(),
+        "{v}"
+    );
+    let plain = render_views(&original, &views, &ro).unwrap();
+    let v0 = t.verify(&k.verifier, &plain, Some(&marked_id)).await;
+    assert_eq!(v0["detected"], false, "{v0}");
 }
