@@ -529,33 +529,11 @@ async fn a_real_scene_is_detected_on_views_the_job_never_saw() {
         "message": "c0ffee42",
         "options": {"orbit": {"count": 24, "width": 256, "height": 256}, "holdout_every": 3},
     });
-    let job: Value = t
-        .client
-        .post(t.url(&format!("/v1/assets/{id}/watermark")))
-        .bearer_auth(&k.owner)
-        .json(&body)
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
     let job = t
-        .wait_job(
-            &k.owner,
-            job["id"].as_str().unwrap(),
-            Duration::from_secs(1800),
-        )
+        .watermark_done(&k.owner, &id, &body, Duration::from_secs(1800))
         .await;
-    assert_eq!(job["state"], "done", "{job}");
     let marked_id = job["result_asset_id"].as_str().unwrap().to_string();
-    let bytes = t
-        .get(&k.owner, &format!("/v1/assets/{marked_id}/file"))
-        .await
-        .bytes()
-        .await
-        .unwrap();
-    let marked = read_scene_bytes(&bytes, Some("ply"), &Limits::default()).unwrap();
+    let (meta, marked) = t.downloaded(&k.owner, &marked_id).await;
     let spec: JobSpec = serde_json::from_value(job["options"].clone()).unwrap();
     assert!(
         spec.embed.reference && spec.embed.finetune.coupled && spec.embed.projection.matched,
@@ -590,12 +568,6 @@ async fn a_real_scene_is_detected_on_views_the_job_never_saw() {
     assert_eq!(v["best"]["matched_head"], true);
     // The shipped pair: the job chose one of its decoders at the check (reported), and the
     // dispute read the asset with that one.
-    let meta: Value = t
-        .get(&k.owner, &format!("/v1/assets/{marked_id}"))
-        .await
-        .json()
-        .await
-        .unwrap();
     eprintln!("donut's decoder: {}", meta["report"]["choice"]);
     assert!(meta["report"]["choice"]["psnr"].is_number(), "{meta}");
     assert_eq!(v["best"]["decoder"], meta["report"]["decoder"], "{v}");
@@ -870,7 +842,7 @@ async fn a_job_written_for_the_coarse_decoder_is_verified_with_it() {
     // dB with no margin: the toy scene's training views stay far above it, so at the check
     // the job restarts for the coarse decoder; its key names that decoder, and the dispute
     // reads the asset with it.
-    let mut t = TestApp::start_with(|c| c.fpr = 1e-3).await;
+    let t = TestApp::start_with(|c| c.fpr = 1e-3).await;
     let k = t.keys().await;
     let original = object_scene(1500, 1, 4);
     let r = t.upload(&k.owner, "object.ply", ply_bytes(&original)).await;
@@ -882,43 +854,15 @@ async fn a_job_written_for_the_coarse_decoder_is_verified_with_it() {
     let mut body = small_job("c0ffee42", 300);
     body["options"]["embed"]["finetune"]["target_psnr"] = json!(10.0);
     body["options"]["embed"]["coarse_margin_db"] = json!(0.0);
-    let job: Value = t
-        .client
-        .post(t.url(&format!("/v1/assets/{id}/watermark")))
-        .bearer_auth(&k.owner)
-        .json(&body)
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
     let job = t
-        .wait_job(
-            &k.owner,
-            job["id"].as_str().unwrap(),
-            Duration::from_secs(900),
-        )
+        .watermark_done(&k.owner, &id, &body, Duration::from_secs(900))
         .await;
-    assert_eq!(job["state"], "done", "{job}");
     let marked_id = job["result_asset_id"].as_str().unwrap().to_string();
-    let meta: Value = t
-        .get(&k.owner, &format!("/v1/assets/{marked_id}"))
-        .await
-        .json()
-        .await
-        .unwrap();
+    let (meta, marked) = t.downloaded(&k.owner, &marked_id).await;
     let (dec, side) = splatmark::decoder::artifact::shipped_coarse_bytes(32).unwrap();
     let coarse = splatmark::decoder::artifact::digest_of(dec, side);
     assert_eq!(meta["report"]["choice"]["coarse"], true, "{meta}");
     assert_eq!(meta["report"]["decoder"], coarse.as_str(), "{meta}");
-    let bytes = t
-        .get(&k.owner, &format!("/v1/assets/{marked_id}/file"))
-        .await
-        .bytes()
-        .await
-        .unwrap();
-    let marked = read_scene_bytes(&bytes, Some("ply"), &Limits::default()).unwrap();
     let spec: JobSpec = serde_json::from_value(job["options"].clone()).unwrap();
     let views = training_views(&original, &spec);
     let ro = RenderOptions {

@@ -303,6 +303,56 @@ impl TestApp {
         r.text().await.unwrap()
     }
 
+    /// Queues a watermark job of `asset` with `body` as `token`, waits for it (at most
+    /// `limit`), checks that it is done, and returns the job's JSON.
+    pub async fn watermark_done(
+        &self,
+        token: &str,
+        asset: &str,
+        body: &Value,
+        limit: Duration,
+    ) -> Value {
+        let job: Value = self
+            .client
+            .post(self.url(&format!("/v1/assets/{asset}/watermark")))
+            .bearer_auth(token)
+            .json(body)
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        let job = self
+            .wait_job(token, job["id"].as_str().expect("a job id"), limit)
+            .await;
+        assert_eq!(job["state"], "done", "{job}");
+        job
+    }
+
+    /// An asset's metadata and its scene as downloaded (INRIA PLY).
+    pub async fn downloaded(&self, token: &str, asset: &str) -> (Value, Gaussians) {
+        let meta: Value = self
+            .get(token, &format!("/v1/assets/{asset}"))
+            .await
+            .json()
+            .await
+            .unwrap();
+        let bytes = self
+            .get(token, &format!("/v1/assets/{asset}/file"))
+            .await
+            .bytes()
+            .await
+            .unwrap();
+        let g = splatmark::scene::read_scene_bytes(
+            &bytes,
+            Some("ply"),
+            &splatmark::scene::Limits::default(),
+        )
+        .unwrap();
+        (meta, g)
+    }
+
     /// Polls a job until it leaves the queued/running states.
     pub async fn wait_job(&self, token: &str, id: &str, limit: Duration) -> Value {
         self.wait_job_until(token, id, limit, |j| {
