@@ -1,0 +1,111 @@
+//! Tests of the whole embedding: the choice between the main and the coarse decoder.
+
+use std::ops::ControlFlow;
+
+use super::*;
+use crate::scene::orbit::{OrbitOptions, orbit_cameras};
+use crate::scene::synthetic::object_scene;
+
+/// The decoders shipped for 32 bits (main and coarse) on the CPU, a small scene, its views
+/// and a payload.
+fn coarse_fixture() -> (Pair, Gaussians, Vec<Camera>, Vec<bool>) {
+    let device = burn::tensor::Device::flex().autodiff();
+    let pair = Pair::resolve(None, 32, &device).expect("shipped decoders");
+    assert!(
+        pair.coarse.is_some(),
+        "a coarse decoder is shipped for 32 bits"
+    );
+    let g = object_scene(400, 0, 7);
+    let cams = orbit_cameras(
+        &g,
+        &OrbitOptions {
+            count: 6,
+            width: 48,
+            height: 48,
+            ..OrbitOptions::default()
+        },
+    )
+    .unwrap();
+    let message: Vec<bool> = (0..32).map(|i| (i * 7 + 3) % 5 < 2).collect();
+    (pair, g, cams, message)
+}
+
+fn small(margin: Option<f32>, target_psnr: f32) -> EmbedOptions {
+    let mut o = EmbedOptions::default();
+    o.finetune.steps = 10;
+    o.finetune.stretch_bce = 0.0;
+    o.finetune.target_psnr = target_psnr;
+    o.coarse_margin_db = margin;
+    o
+}
+
+#[test]
+fn an_asset_with_fidelity_to_spare_is_written_for_the_coarse_decoder() {
+    let (pair, g, cams, message) = coarse_fixture();
+    let coarse = pair.coarse.clone().unwrap();
+    let go = |pair: &Pair, o: &EmbedOptions| {
+        let mut steps = Vec::new();
+        let e = embed(&g, &cams, &message, pair, o, |p| {
+            if p.phase == Phase::Finetune && p.step > 0 {
+                steps.push(p.step);
+            }
+            ControlFlow::Continue(())
+        })
+        .expect("embeds");
+        (e, steps)
+    };
+    // A bound of 1 dB: every render is far above it, so the check (step 3 of 10) switches.
+    let o = small(Some(2.0), 1.0);
+    let (switched, steps) = go(&pair, &o);
+    let c = switched.report.choice.expect("a choice was made");
+    assert!(
+        c.coarse && c.step == 3 && c.threshold == 3.0 && c.psnr > 3.0,
+        "{c:?}"
+    );
+    assert_eq!(switched.report.decoder, coarse.digest());
+    // Progress reports the main decoder's steps before the check, then the coarse run's
+    // from its first step.
+    assert_eq!(steps, [1, 2].into_iter().chain(1..=10).collect::<Vec<_>>());
+    // The switch restarts from the original: the result is the coarse decoder's own
+    // embedding, bit for bit, and so is what the report says a dispute needs.
+    let (alone, _) = go(&Pair::single(coarse.clone()), &o);
+    assert!(alone.report.choice.is_none());
+    assert_eq!(switched.scene, alone.scene);
+    assert_eq!(
+        switched.report.reference_logits,
+        alone.report.reference_logits
+    );
+    assert_eq!(
+        switched.report.view_projection,
+        alone.report.view_projection
+    );
+    assert_eq!(
+        pair.by_digest(&switched.report.decoder).map(|m| m.digest()),
+        Some(coarse.digest())
+    );
+
+    // A bound the renders do not clear by the margin keeps the main decoder, and that
+    // run is the main decoder's own embedding.
+    let o = small(Some(60.0), 60.0);
+    let (kept, _) = go(&pair, &o);
+    let c = kept.report.choice.expect("a choice was made");
+    assert!(!c.coarse && c.psnr <= c.threshold, "{c:?}");
+    assert_eq!(kept.report.decoder, pair.main.digest());
+    let (main_alone, _) = go(&Pair::single(pair.main.clone()), &o);
+    assert_eq!(kept.scene, main_alone.scene);
+
+    // Off, or without a bound to measure from: no choice, the main decoder.
+    for o in [small(None, 38.0), small(Some(2.0), 0.0)] {
+        let (e, _) = go(&pair, &o);
+        assert_eq!(
+            (e.report.choice, e.report.decoder.as_str()),
+            (None, pair.main.digest().as_str())
+        );
+    }
+    // A margin out of range is refused before anything runs.
+    let e = embed(&g, &cams, &message, &pair, &small(Some(-1.0), 38.0), |_| {
+        ControlFlow::Continue(())
+    })
+    .unwrap_err();
+    assert!(e.to_string().contains("coarse_margin_db"), "{e}");
+}
