@@ -48,6 +48,11 @@ use crate::scene::orbit::{OrbitOptions, orbit_cameras};
 use crate::scene::{Camera, Gaussians, Limits};
 use crate::verify::eval::{EvalSettings, SceneEval, evaluate_scene};
 
+mod markdown;
+mod targets;
+pub use markdown::markdown;
+pub use targets::{BitCount, TargetCheck, check, targets};
+
 /// A scene of the bench.
 #[derive(Clone, Debug, Serialize)]
 pub struct BenchScene {
@@ -202,61 +207,6 @@ pub enum BenchError {
     Scene(#[from] crate::scene::SceneError),
 }
 
-/// One figure against its target.
-#[derive(Clone, Debug, PartialEq, Serialize)]
-pub struct TargetCheck {
-    pub name: String,
-    pub value: f64,
-    /// `value ≥ target` is met (for "unmarked_detected", 0 = not detected is met).
-    pub target: f64,
-    pub met: bool,
-    /// Bit-accuracy targets: the bits the figure counts (views × message bits), how many of
-    /// them were right, and how many the target needs — the judge's resolution (on udon's two
-    /// held-out cameras at 32 bits one bit is 1.6 points).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub bits: Option<BitCount>,
-}
-
-/// Bits behind a bit-accuracy figure.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
-pub struct BitCount {
-    pub right: usize,
-    pub counted: usize,
-    pub needed: usize,
-}
-
-impl BitCount {
-    /// The count behind `accuracy` (a mean over `views` of per-view accuracies of `bits` bits
-    /// each) and the fewest right bits that reach `target`.
-    pub fn of(accuracy: f64, views: usize, bits: usize, target: f64) -> Self {
-        let counted = views * bits;
-        let n = counted as f64;
-        Self {
-            right: (accuracy * n).round() as usize,
-            counted,
-            // The 1e-9 keeps a product that is an integer up to rounding (0.5 · 64) from
-            // asking for one bit more.
-            needed: ((target * n - 1e-9).ceil().max(0.0) as usize).min(counted),
-        }
-    }
-}
-
-impl TargetCheck {
-    /// How the bench names a missed target: with the bits counted for an accuracy ("clean
-    /// (63 of 64 bits; 64 needed)"), the value for PSNR and SSIM, the name alone for a decision.
-    pub fn describe(&self) -> String {
-        match (self.bits, self.name.as_str()) {
-            (Some(b), _) => format!(
-                "{} ({} of {} bits; {} needed)",
-                self.name, b.right, b.counted, b.needed
-            ),
-            (None, "psnr") => format!("psnr ({:.2} dB; {} needed)", self.value, self.target),
-            (None, "ssim") => format!("ssim ({:.3}; {} needed)", self.value, self.target),
-            (None, _) => self.name.clone(),
-        }
-    }
-}
-
 /// One scene at one message length.
 #[derive(Clone, Debug, Serialize)]
 pub struct QualityRun {
@@ -299,75 +249,6 @@ pub struct QualityReport {
     pub wall_s: f64,
     /// Every target of every run met.
     pub met: bool,
-}
-
-/// The issue's targets for `bits` (unseen views): (row or figure, minimum).
-pub fn targets(bits: usize) -> Vec<(&'static str, f64)> {
-    match bits {
-        32 => vec![
-            ("clean", 0.985),
-            ("psnr", 36.0),
-            ("ssim", 0.98),
-            ("noise", 0.912),
-            ("rotation", 0.962),
-            ("scaling", 0.951),
-            ("blur", 0.978),
-            ("crop_on_asset", 0.959),
-            ("jpeg", 0.930),
-            ("combined_on_asset", 0.913),
-            ("remove_20", 0.982),
-            ("clone_20", 0.975),
-            ("noise_0.1_scaled", 0.905),
-        ],
-        48 => vec![("clean", 0.943), ("psnr", 33.5)],
-        _ => vec![("clean", 0.917), ("psnr", 32.7)],
-    }
-}
-
-/// Checks `eval` against [`targets`], plus "the unmarked scene is not detected" and "the
-/// clean views are detected on averaged logits".
-pub fn check(eval: &SceneEval, bits: usize) -> Vec<TargetCheck> {
-    let mut out = Vec::new();
-    for (name, target) in targets(bits) {
-        let (value, count) = match name {
-            "psnr" => (eval.psnr, None),
-            "ssim" => (eval.ssim, None),
-            _ => eval
-                .rows
-                .iter()
-                .find(|r| r.name == name)
-                .map_or((f64::NAN, None), |r| {
-                    let count = BitCount::of(r.bit_accuracy, eval.views, bits, target);
-                    (r.bit_accuracy, Some(count))
-                }),
-        };
-        out.push(TargetCheck {
-            name: name.into(),
-            value,
-            target,
-            met: value >= target,
-            bits: count,
-        });
-    }
-    if let Some(r) = eval.rows.iter().find(|r| r.name == "clean") {
-        out.push(TargetCheck {
-            name: "clean_detected".into(),
-            value: f64::from(u8::from(r.detected)),
-            target: 1.0,
-            met: r.detected,
-            bits: None,
-        });
-    }
-    if let Some(r) = eval.rows.iter().find(|r| r.name == "unmarked") {
-        out.push(TargetCheck {
-            name: "unmarked_detected".into(),
-            value: f64::from(u8::from(r.detected)),
-            target: 0.0,
-            met: !r.detected,
-            bits: None,
-        });
-    }
-    out
 }
 
 fn input_err(path: &Path, e: impl std::fmt::Display) -> BenchError {
@@ -645,161 +526,6 @@ pub fn run(
         wall_s: start.elapsed().as_secs_f64(),
         met,
     })
-}
-
-/// The report as markdown tables (one row per scene × bits; accuracies in %).
-pub fn markdown(report: &QualityReport) -> String {
-    let cols = [
-        "clean",
-        "noise",
-        "rotation",
-        "scaling",
-        "blur_0.8",
-        "crop",
-        "crop_on_asset",
-        "jpeg",
-        "combined",
-        "combined_on_asset",
-        "remove_20",
-        "clone_20",
-        "noise_0.1_scaled",
-        "noise_0.1",
-    ];
-    let mut s = String::new();
-    s += "| scene | bits | views train / unseen | PSNR | PSNR on the asset | SSIM |";
-    for c in cols {
-        s += &format!(" {c} |");
-    }
-    s += " clean detected per view | clean detected (avg logits) | unmarked detected | embed s (steps) | targets |\n";
-    s += "|---|---|---|---|---|---|";
-    for _ in cols {
-        s += "---|";
-    }
-    s += "---|---|---|---|---|\n";
-    for r in &report.runs {
-        let acc = |name: &str| {
-            r.eval
-                .rows
-                .iter()
-                .find(|x| x.name == name)
-                .map_or("–".to_string(), |x| {
-                    format!("{:.1}", 100.0 * x.bit_accuracy)
-                })
-        };
-        let row = |name: &str| r.eval.rows.iter().find(|x| x.name == name);
-        let path = if r.path_views > 0 {
-            format!(" + {} path", r.path_views)
-        } else {
-            String::new()
-        };
-        let on_asset = r
-            .eval
-            .psnr_on_asset
-            .map_or("–".to_string(), |p| format!("{p:.2}"));
-        s += &format!(
-            "| {} | {} | {}{path} / {} | {:.2} | {on_asset} | {:.3} |",
-            r.scene, r.bits, r.train_views, r.eval_views, r.eval.psnr, r.eval.ssim
-        );
-        for c in cols {
-            s += &format!(" {} |", acc(c));
-        }
-        let missed: Vec<String> = r
-            .targets
-            .iter()
-            .filter(|t| !t.met)
-            .map(TargetCheck::describe)
-            .collect();
-        s += &format!(
-            " {} | {} | {} | {:.0} ({}) | {} |\n",
-            row("clean").map_or("–".into(), |x| format!(
-                "{:.0} %",
-                100.0 * x.detection_rate_per_view
-            )),
-            row("clean").map_or("–".into(), |x| format!(
-                "{} (p {:.1e})",
-                if x.detected { "yes" } else { "no" },
-                x.p_value
-            )),
-            row("unmarked").map_or("–".into(), |x| if x.detected {
-                "YES".into()
-            } else {
-                "no".to_string()
-            }),
-            r.embed_s,
-            r.steps,
-            if missed.is_empty() {
-                "all met".to_string()
-            } else {
-                format!("missed: {}", missed.join(", "))
-            }
-        );
-    }
-    if report.runs.iter().any(|r| !r.eval.per_view.is_empty()) {
-        s += "\nEach unseen view, clean (share of its pixels showing the asset · bits right, %; PSNR of the frame and of the asset's pixels; the share of the asset the 40 % crop keeps, centred and centred on the asset):\n\n";
-        for r in report.runs.iter().filter(|r| !r.eval.per_view.is_empty()) {
-            let views: Vec<String> = r
-                .eval
-                .per_view
-                .iter()
-                .map(|v| {
-                    let crop = match (v.asset_in_crop, v.asset_in_crop_on_asset) {
-                        (Some(k), Some(on)) => format!(
-                            " (crop keeps {:.0} % of it, centred on it {:.0} %)",
-                            100.0 * k,
-                            100.0 * on
-                        ),
-                        (Some(k), None) => format!(" (crop keeps {:.0} % of it)", 100.0 * k),
-                        _ => String::new(),
-                    };
-                    let psnr = match v.psnr_on_asset {
-                        Some(p) => format!(" ({:.1} dB, on the asset {p:.1} dB)", v.psnr),
-                        None => format!(" ({:.1} dB)", v.psnr),
-                    };
-                    format!(
-                        "{:.0} % · {:.1}{psnr}{crop}",
-                        100.0 * v.coverage,
-                        100.0 * v.bit_accuracy
-                    )
-                })
-                .collect();
-            s += &format!("- {}, {} bits: {}\n", r.scene, r.bits, views.join("; "));
-        }
-    }
-    let costs: Vec<String> = report
-        .runs
-        .iter()
-        .filter_map(|r| {
-            let parts: Vec<String> = r
-                .eval
-                .rows
-                .iter()
-                .filter_map(|x| {
-                    let frame = x.psnr_vs_original?;
-                    Some(match x.psnr_on_asset_vs_original {
-                        Some(a) => format!("{} {frame:.1} dB (on the asset {a:.1} dB)", x.name),
-                        None => format!("{} {frame:.1} dB", x.name),
-                    })
-                })
-                .collect();
-            let scale = r.eval.noise_position_scale.map_or(String::new(), |k| {
-                format!(" (scaled: the means' noise × {k:.3})")
-            });
-            (!parts.is_empty()).then(|| {
-                format!(
-                    "- {}, {} bits: {}{scale}",
-                    r.scene,
-                    r.bits,
-                    parts.join("; ")
-                )
-            })
-        })
-        .collect();
-    if !costs.is_empty() {
-        s += "\nWhat each model attack costs the asset (PSNR of the attacked copy against the original, unseen views):\n\n";
-        s += &costs.join("\n");
-        s += "\n";
-    }
-    s
 }
 
 #[cfg(test)]
