@@ -43,6 +43,8 @@ fn the_quick_bench_detects_the_defaults_watermark_on_unseen_views() {
         .arg(&out)
         .arg("--markdown")
         .arg(&md)
+        .arg("--assets")
+        .arg(dir.path().join("assets"))
         .output()
         .unwrap();
     assert!(
@@ -81,4 +83,23 @@ fn the_quick_bench_detects_the_defaults_watermark_on_unseen_views() {
     // The markdown table names the scene and says which targets were missed.
     let table = std::fs::read_to_string(&md).unwrap();
     assert!(table.starts_with("| scene |") && table.contains("donut"));
+    // The embedding it judged is kept for a second look: the watermarked scene, its report
+    // (the message, the decoder) and one line per finetuning step.
+    let kept = dir.path().join("assets/donut-32-seed0");
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(kept.with_extension("report.json")).unwrap())
+            .unwrap();
+    assert_eq!(report["decoder"], run["decoder"]);
+    assert_eq!(report["bits"], 32);
+    assert_eq!(report["message_hex"].as_str().unwrap().len(), 8);
+    let g = splatmark::scene::read_scene(
+        kept.with_extension("ply"),
+        &splatmark::scene::Limits::default(),
+    )
+    .unwrap();
+    assert_eq!(g.len() as u64, report["output_gaussians"].as_u64().unwrap());
+    let steps = std::fs::read_to_string(kept.with_extension("steps.jsonl")).unwrap();
+    let last: serde_json::Value = serde_json::from_str(steps.lines().last().unwrap()).unwrap();
+    assert_eq!(steps.lines().count() as u64, run["steps"].as_u64().unwrap());
+    assert_eq!(last["step"], run["steps"]);
 }

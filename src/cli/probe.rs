@@ -488,6 +488,11 @@ pub struct QualityArgs {
     weights_dir: Option<PathBuf>,
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Keep every embedding in this folder: `{scene}-{bits}-seed{seed}.ply` (the watermarked
+    /// scene), `.report.json` (its report, with the message) and `.steps.jsonl` (every
+    /// finetuning step), for `splatmark eval`, `verify` or `render` afterwards.
+    #[arg(long)]
+    assets: Option<PathBuf>,
     /// Write the JSON report here too.
     #[arg(long)]
     out: Option<PathBuf>,
@@ -545,6 +550,7 @@ pub fn bench_cmd(c: &BenchCommand, progress: super::progress::ProgressMode) -> R
         o.embed = super::config::read_json_config(p, "embedding options")?;
     }
     o.weights_dir = a.weights_dir.clone();
+    o.assets_dir = a.assets.clone();
     o.seed = a.seed;
     let device = DeviceChoice::Flex.device().autodiff();
     let mut log = super::progress::BenchProgress::new(progress);

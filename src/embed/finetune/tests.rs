@@ -12,6 +12,7 @@ use crate::scene::synthetic::object_scene;
 use burn::tensor::Device;
 
 mod gpu;
+mod measure;
 
 fn model(bits: usize) -> WatermarkModel {
     let cfg = TrainConfig {

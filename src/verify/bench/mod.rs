@@ -130,6 +130,9 @@ pub struct QualityOptions {
     pub seed: u64,
     /// Folder with `decoder-{bits}.bpk` artifacts; the shipped weights when absent.
     pub weights_dir: Option<PathBuf>,
+    /// Folder to keep each embedding in ([`keep_asset`]): the watermarked scene, its report
+    /// and its finetuning steps, so that it can be evaluated, attacked or rendered again.
+    pub assets_dir: Option<PathBuf>,
 }
 
 impl QualityOptions {
@@ -167,6 +170,7 @@ impl QualityOptions {
             fpr: 1e-6,
             seed: 0,
             weights_dir: None,
+            assets_dir: None,
         }
     }
 
@@ -205,6 +209,8 @@ pub enum BenchError {
     Eval(#[from] crate::verify::eval::EvalError),
     #[error(transparent)]
     Scene(#[from] crate::scene::SceneError),
+    #[error("cannot write {path}: {message}")]
+    Output { path: PathBuf, message: String },
 }
 
 /// One scene at one message length.
@@ -310,6 +316,46 @@ pub fn views(
         ..OrbitOptions::default()
     };
     Ok((train, orbit_cameras(g, &unseen)?))
+}
+
+/// Writes an embedding into `dir` (created if missing) as `{scene}-{bits}-seed{seed}.ply` (the
+/// watermarked scene, INRIA binary PLY), `….report.json` (its report: message, decoder,
+/// options, timings) and `….steps.jsonl` (every finetuning step of the run that was kept);
+/// returns the scene's path with `.ply` replaced by `.*`. Each file is written whole or not
+/// at all.
+pub fn keep_asset(
+    dir: &Path,
+    scene: &str,
+    bits: usize,
+    seed: u64,
+    out: &crate::embed::pipeline::Embedded,
+) -> Result<PathBuf, BenchError> {
+    let err = |path: &Path, e: &dyn std::fmt::Display| BenchError::Output {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    };
+    std::fs::create_dir_all(dir).map_err(|e| err(dir, &e))?;
+    let stem = dir.join(format!("{scene}-{bits}-seed{seed}"));
+    let with = |ext: &str| stem.with_extension(ext);
+    let write = |path: PathBuf, bytes: Vec<u8>| {
+        crate::decoder::artifact::write_atomic(&path, &bytes).map_err(|e| match e {
+            crate::decoder::WeightsError::Io { source, .. } => err(&path, &source),
+            e => err(&path, &e),
+        })
+    };
+    let mut ply = Vec::new();
+    crate::scene::write_ply(&out.scene, &mut ply).map_err(|e| err(&with("ply"), &e))?;
+    write(with("ply"), ply)?;
+    let report =
+        serde_json::to_vec_pretty(&out.report).map_err(|e| err(&with("report.json"), &e))?;
+    write(with("report.json"), report)?;
+    let mut steps = Vec::new();
+    for s in &out.log {
+        serde_json::to_writer(&mut steps, s).map_err(|e| err(&with("steps.jsonl"), &e))?;
+        steps.push(b'\n');
+    }
+    write(with("steps.jsonl"), steps)?;
+    Ok(with("*"))
 }
 
 /// The decoder of `bits` bits: from `weights_dir` (`decoder-{bits}.bpk`) or the shipped one.
@@ -493,6 +539,10 @@ pub fn run(
             }
             // Decoded as a dispute would: with the decoder the bits were written for, relative
             // to the asset when the embedding measured it.
+            if let Some(dir) = &opts.assets_dir {
+                let files = keep_asset(dir, name, bits, opts.seed, &out)?;
+                log.line(&format!("  kept: {}", files.display()));
+            }
             let model = as_disputed(written_for(&decoders, &out.report)?, &out.report);
             let eval = evaluate_scene(&g, &out.scene, &unseen, &model, &payload, &settings)?;
             let targets = check(&eval, bits);
