@@ -735,14 +735,23 @@ fn decode_views(
 /// features computed on the host (empty when burn computed them).
 type Decoded = (Vec<Tensor<2>>, Vec<Tensor<2>>, Tensor<1>, Vec<HostFeatures>);
 
-/// The step after which `stretch_bce` decides (and the pipeline chooses between its
-/// decoders, `EmbedOptions::coarse_margin_db`): three tenths of `steps` (where the EOT ramp
+/// The step after which `stretch_bce` decides: three tenths of `steps` (where the EOT ramp
 /// of the defaults completes).
 pub(crate) fn stretch_step(cfg: &FinetuneConfig) -> usize {
     (cfg.steps * 3 / 10).max(1)
 }
 
-/// How many steps up to [`stretch_step`] the checks average: the last tenth of `steps`.
+/// The step after which the pipeline chooses between its decoders
+/// (`EmbedOptions::coarse_margin_db`): a fifth of `steps` (step 70 of the default 350). The
+/// training views' PSNR over steps 36–70 separates the scenes as widely as over steps 71–105
+/// and varies less between payloads (docs/RESULTS.md, "The decoder chosen at step 70"), and a
+/// switch then discards 70 steps of the main decoder instead of 105.
+pub(crate) fn choice_step(cfg: &FinetuneConfig) -> usize {
+    (cfg.steps / 5).max(1)
+}
+
+/// How many steps up to [`stretch_step`] or [`choice_step`] the checks average: the last
+/// tenth of `steps`.
 pub(crate) fn check_window(cfg: &FinetuneConfig) -> usize {
     (cfg.steps / 10).max(1)
 }

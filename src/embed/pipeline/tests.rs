@@ -54,18 +54,18 @@ fn an_asset_with_fidelity_to_spare_is_written_for_the_coarse_decoder() {
         .expect("embeds");
         (e, steps)
     };
-    // A bound of 1 dB: every render is far above it, so the check (step 3 of 10) switches.
+    // A bound of 1 dB: every render is far above it, so the check (step 2 of 10) switches.
     let o = small(Some(2.0), 1.0);
     let (switched, steps) = go(&pair, &o);
     let c = switched.report.choice.expect("a choice was made");
     assert!(
-        c.coarse && c.step == 3 && c.threshold == 3.0 && c.psnr > 3.0,
+        c.coarse && c.step == 2 && c.threshold == 3.0 && c.psnr > 3.0,
         "{c:?}"
     );
     assert_eq!(switched.report.decoder, coarse.digest());
     // Progress reports the main decoder's steps before the check, then the coarse run's
     // from its first step.
-    assert_eq!(steps, [1, 2].into_iter().chain(1..=10).collect::<Vec<_>>());
+    assert_eq!(steps, [1].into_iter().chain(1..=10).collect::<Vec<_>>());
     // The switch restarts from the original: the result is the coarse decoder's own
     // embedding, bit for bit, and so is what the report says a dispute needs.
     let (alone, _) = go(&Pair::single(coarse.clone()), &o);
