@@ -42,8 +42,8 @@ struct Step {
 @group(0) @binding(9) var<storage, read_write> norms: array<f32>;
 // The planned scene's parameters (the fidelity bound's origin), laid out like `params`.
 @group(0) @binding(10) var<storage, read> base: array<f32>;
-// Per Gaussian, non-zero when removed.
-@group(0) @binding(11) var<storage, read> removed: array<u32>;
+// Per Gaussian, how many copies of it the edited scene holds (0 removed, 1 as is, 2 cloned).
+@group(0) @binding(11) var<storage, read> copies: array<u32>;
 
 const BETA1: f32 = 0.9;
 const BETA2: f32 = 0.999;
@@ -174,16 +174,16 @@ fn shrink(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
     normalise_quaternion(at);
 }
 
-// A copy of the scene (already in `params`) with the removed Gaussians transparent:
-// α = sigmoid(−40), far below the 1/255 a Gaussian needs to be drawn.
+// A copy of the scene (already in `params`) with the Gaussians of 0 copies transparent:
+// α = sigmoid(−40), far below the 1/255 a Gaussian needs to be drawn. (Clones, c > 1, are
+// refused on the host: the GPU's backward stays scene-shaped.)
 @compute @workgroup_size(256)
-fn mask_removed(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+fn edit_copies(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let local = local_index(gid, nwg);
     if (local >= chunk.count) {
         return;
     }
-    let i = chunk.first + local;
-    if (removed[i] != 0u) {
+    if (copies[chunk.first + local] == 0u) {
         params[chunk.params_at + local * args.floats + 10u] = -40.0;
     }
 }

@@ -194,10 +194,21 @@ impl<T: Real> Replay<T> {
     /// Exact but for the Gaussians the original render never reached (it stopped where
     /// T ≤ 1e-4; behind an opaque removed Gaussian they would now show).
     pub fn without(&self, dropped: &[bool]) -> Result<Self, RenderError> {
-        if dropped.len() != self.n_gaussians {
+        let copies: Vec<u8> = dropped.iter().map(|&d| u8::from(!d)).collect();
+        self.with_copies(&copies)
+    }
+
+    /// This view with `copies[i]` copies of Gaussian i (scene-indexed): 0 removes it (as
+    /// [`Self::without`]), 1 keeps it, c > 1 composites it c times in place, as the model
+    /// attack "clone Gaussians" does (a copy has its original's depth, so it composites right
+    /// after it): its recorded opacity α becomes 1 − (1 − α)^c, its colour stays shared. Exact
+    /// but for what the original render never reached (see [`Self::without`]) and for the
+    /// rasterizer's cap of α at 0.99 per copy.
+    pub fn with_copies(&self, copies: &[u8]) -> Result<Self, RenderError> {
+        if copies.len() != self.n_gaussians {
             return Err(RenderError::BadScene(format!(
-                "a removal mask of {} Gaussians for a replay of {}",
-                dropped.len(),
+                "copies of {} Gaussians for a replay of {}",
+                copies.len(),
                 self.n_gaussians
             )));
         }
@@ -227,7 +238,7 @@ impl<T: Real> Replay<T> {
                 let mut touched = vec![false; px];
                 let mut k = start;
                 for &(splat, end) in &self.runs[r0 as usize..r1 as usize] {
-                    let gone = dropped[self.ids[splat as usize] as usize];
+                    let c = copies[self.ids[splat as usize] as usize];
                     for (p, &wi) in self.pix[k..end as usize]
                         .iter()
                         .zip(&self.w[k..end as usize])
@@ -237,7 +248,12 @@ impl<T: Real> Replay<T> {
                         let to = t_orig[p];
                         let alpha = if to > T::zero() { wi / to } else { T::zero() };
                         t_orig[p] = to * (T::one() - alpha);
-                        if !gone {
+                        if c > 0 {
+                            let alpha = if c == 1 {
+                                alpha
+                            } else {
+                                T::one() - (T::one() - alpha).powi(i32::from(c))
+                            };
                             w_out[k - start] = alpha * t_new[p];
                             t_new[p] = t_new[p] * (T::one() - alpha);
                         }

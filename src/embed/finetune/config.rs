@@ -176,6 +176,16 @@ pub struct FinetuneConfig {
     pub eot_remove_probability: f32,
     /// Largest fraction of the Gaussians `eot_remove_probability` removes.
     pub eot_remove_max: f32,
+    /// The model attack "clone Gaussians" in the EOT term, drawn as removal is (after it, on
+    /// the same steps or others): with this probability the watermark loss reads the step's
+    /// views with a random fraction — uniform in [0, `eot_clone_max`] — of the Gaussians
+    /// duplicated in place, as the model attack duplicates them (a replay composites each
+    /// twice, [`crate::render::Replay::with_copies`]; a rasterised view renders the appended
+    /// copies and folds their gradients back; a Gaussian drawn for both is removed). CPU
+    /// rasterizer only. 0 = off, the default (docs/RESULTS.md, "Cloning in the EOT term").
+    pub eot_clone_probability: f32,
+    /// Largest fraction of the Gaussians `eot_clone_probability` clones.
+    pub eot_clone_max: f32,
     /// The model attack "parameter noise" in the EOT term: on a step that draws an attack
     /// (after the same ramp), with this probability the watermark loss reads the step's views
     /// of a copy of the scene with normal noise of standard deviation `eot_noise_std` on every
@@ -270,6 +280,16 @@ impl FinetuneConfig {
                 self.eot_noise_probability, self.eot_noise_std
             ));
         }
+        for (name, p) in [
+            ("eot_remove_probability", self.eot_remove_probability),
+            ("eot_remove_max", self.eot_remove_max),
+            ("eot_clone_probability", self.eot_clone_probability),
+            ("eot_clone_max", self.eot_clone_max),
+        ] {
+            if !(0.0..=1.0).contains(&p) {
+                return Err(format!("{name} must be in [0, 1], got {p}"));
+            }
+        }
         if !(self.stretch_bce.is_finite() && self.stretch_bce >= 0.0) {
             return Err(format!(
                 "stretch_bce must be finite and ≥ 0 (0 = off), got {}",
@@ -318,6 +338,8 @@ impl Default for FinetuneConfig {
             eot_ramp: 0.3,
             eot_remove_probability: 0.5,
             eot_remove_max: 0.3,
+            eot_clone_probability: 0.0,
+            eot_clone_max: 0.3,
             eot_noise_probability: 0.0,
             eot_noise_std: paper_model_noise_std(),
             dwt_levels: 2,

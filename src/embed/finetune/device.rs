@@ -86,10 +86,11 @@ impl Stepper {
         self.params.scene()
     }
 
-    /// The live parameters with the Gaussians in `removed` transparent.
-    pub fn without(&self, removed: &[bool]) -> Result<GpuScene, FinetuneError> {
+    /// The live parameters with `copies[i]` copies of Gaussian i (0 transparent, 2 as opaque
+    /// as two copies together).
+    pub fn edited(&self, copies: &[u8]) -> Result<GpuScene, FinetuneError> {
         self.gpu
-            .params_without(&self.params, removed)
+            .params_edited(&self.params, copies)
             .map_err(gpu_err)
     }
 

@@ -221,6 +221,13 @@ pub fn finetune(
         return Err(FinetuneError::NoViews);
     }
     cfg.validate().map_err(FinetuneError::Invalid)?;
+    if cfg.eot_clone_probability > 0.0 && matches!(cfg.rasterizer, Rasterizer::Gpu(_)) {
+        return Err(FinetuneError::Invalid(
+            "eot_clone_probability runs on the CPU rasterizer (its backward folds each clone's \
+             gradient into its original); the GPU's stays scene-shaped"
+                .into(),
+        ));
+    }
     for (index, v) in views.iter().enumerate() {
         let expected = (v.camera.width * v.camera.height) as usize;
         if v.target.len() != expected {
@@ -375,6 +382,27 @@ pub fn finetune(
             position_scale: 1.0,
             seed: rng.next_u64(),
         });
+        // The model attack "clone Gaussians" (drawn only when enabled, likewise).
+        let cloned: Option<Vec<bool>> = (cfg.eot_clone_probability > 0.0
+            && rng.uniform() < p_attack * f64::from(cfg.eot_clone_probability))
+        .then(|| {
+            let f = rng.uniform() * f64::from(cfg.eot_clone_max.clamp(0.0, 1.0));
+            (0..g.len()).map(|_| rng.uniform() < f).collect()
+        });
+        // Removal and cloning as copies of each Gaussian: 0 removed, 2 cloned, 1 as is.
+        let copies: Option<Vec<u8>> = (removed.is_some() || cloned.is_some()).then(|| {
+            (0..g.len())
+                .map(|i| {
+                    if removed.as_ref().is_some_and(|r| r[i]) {
+                        0
+                    } else if cloned.as_ref().is_some_and(|c| c[i]) {
+                        2
+                    } else {
+                        1
+                    }
+                })
+                .collect()
+        });
         let noised = match noised {
             Some(attack) => {
                 if let Some(d) = &on_device {
@@ -384,12 +412,12 @@ pub fn finetune(
             }
             None => None,
         };
-        let wm_renders = match (&noised, &removed, &on_device) {
-            (Some(n), r, _) => Some(renderer.rasterise_views(n, &picked, r.as_deref())?),
-            (None, Some(r), Some(d)) => {
-                Some(renderer.render_views_from(&g, &d.without(r)?, &picked)?)
+        let wm_renders = match (&noised, &copies, &on_device) {
+            (Some(n), c, _) => Some(renderer.rasterise_views(n, &picked, c.as_deref())?),
+            (None, Some(c), Some(d)) => {
+                Some(renderer.render_views_from(&g, &d.edited(c)?, &picked)?)
             }
-            (None, Some(r), None) => Some(renderer.render_views_without(&g, &picked, r)?),
+            (None, Some(c), None) => Some(renderer.render_views_edited(&g, &picked, c)?),
             (None, None, _) => None,
         };
         let wm_frames = wm_renders.as_ref().unwrap_or(&renders);

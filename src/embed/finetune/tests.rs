@@ -544,6 +544,29 @@ fn bad_inputs_are_typed_errors() {
             Err(FinetuneError::Invalid(_))
         ));
     }
+    for (name, cfg) in [
+        (
+            "eot_clone_probability",
+            FinetuneConfig {
+                eot_clone_probability: 1.5,
+                ..config(1)
+            },
+        ),
+        (
+            "eot_remove_max",
+            FinetuneConfig {
+                eot_remove_max: -0.1,
+                ..config(1)
+            },
+        ),
+    ] {
+        assert!(matches!(
+            finetune(&g, &mk, &views, &m, &message(), &cfg, |_| {
+                ControlFlow::Continue(())
+            }),
+            Err(FinetuneError::Invalid(e)) if e.contains(name)
+        ));
+    }
     // A switch that would do nothing is refused, not ignored.
     let cfg = FinetuneConfig {
         coupled: true,
@@ -556,6 +579,44 @@ fn bad_inputs_are_typed_errors() {
         }),
         Err(FinetuneError::Invalid(e)) if e.contains("wm_geometry")
     ));
+}
+
+#[test]
+fn cloning_in_the_eot_term_changes_what_the_watermark_loss_reads_replayed_or_rasterised() {
+    let (g, views, _) = setup();
+    let m = model(8);
+    let msg = message();
+    let mk = masks(g.len(), |i| i.is_multiple_of(3), [1.0; 5], [0.0; 5]);
+    // Replayed (coupled, colour only: the geometry never moves) and rasterised (the paper's
+    // decoupled routes move it): cloning every step changes the run; off, the run is the
+    // one without the option.
+    for base in [
+        FinetuneConfig {
+            coupled: true,
+            lr: LearningRates::colour_only(),
+            ..config(3)
+        },
+        config(3),
+    ] {
+        let run = |p: f32| {
+            let cfg = FinetuneConfig {
+                eot_clone_probability: p,
+                eot_clone_max: 1.0,
+                eot_ramp: 0.0,
+                ..base.clone()
+            };
+            finetune(&g, &mk, &views, &m, &msg, &cfg, |_| {
+                ControlFlow::Continue(())
+            })
+            .unwrap()
+        };
+        let (off, on) = (run(0.0), run(1.0));
+        assert_eq!(off.gaussians, run(0.0).gaussians);
+        assert_eq!(on.gaussians.len(), g.len());
+        let eot = |r: &Finetuned| r.log.iter().map(|s| s.bce_eot).collect::<Vec<_>>();
+        assert_ne!(eot(&off), eot(&on), "coupled {}", base.coupled);
+        assert_ne!(off.gaussians, on.gaussians, "coupled {}", base.coupled);
+    }
 }
 
 #[test]
@@ -738,19 +799,27 @@ fn the_shipped_decoders_features_on_the_host_give_burns_logits_and_image_gradien
 }
 
 #[test]
-fn removing_gaussians_reads_alike_from_a_replay_and_from_the_rasterizer() {
+fn removing_and_cloning_gaussians_reads_alike_from_a_replay_and_from_the_rasterizer() {
     let (g, views, opts) = setup();
     let removed: Vec<bool> = (0..g.len()).map(|i| (i * 7919) % 5 == 0).collect();
+    // Every fifth removed, every seventh of the rest cloned.
+    let copies: Vec<u8> = (0..g.len())
+        .map(|i| match (removed[i], i % 7 == 3) {
+            (true, _) => 0,
+            (false, true) => 2,
+            _ => 1,
+        })
+        .collect();
     let mut replayed = Renderer::new(&views, &opts, true, Rasterizer::Cpu);
     let mut rasterised = Renderer::new(&views, &opts, false, Rasterizer::Cpu);
     let mut reached = 0;
     for v in 0..views.len() {
         let a = replayed
-            .render_views_without(&g, &[v], &removed)
+            .render_views_edited(&g, &[v], &copies)
             .unwrap()
             .remove(0);
         let b = rasterised
-            .render_views_without(&g, &[v], &removed)
+            .render_views_edited(&g, &[v], &copies)
             .unwrap()
             .remove(0);
         assert!(matches!(a, Frame::Removed { .. }));
@@ -764,7 +833,7 @@ fn removing_gaussians_reads_alike_from_a_replay_and_from_the_rasterizer() {
             .count();
         assert!(
             changed > 20,
-            "view {v}: removing a fifth changes {changed} pixels"
+            "view {v}: removing a fifth and cloning some changes {changed} pixels"
         );
         // Equal but where the recorded render stopped early (T ≤ 1e-4) in front of Gaussians
         // that now show through (Replay::without).
@@ -821,10 +890,10 @@ fn removing_gaussians_reads_alike_from_a_replay_and_from_the_rasterizer() {
     assert!(reached > 100);
     // A step's views together: one copy of the scene for all of them, the same frames.
     let all: Vec<usize> = (0..views.len()).collect();
-    let together = rasterised.render_views_without(&g, &all, &removed).unwrap();
+    let together = rasterised.render_views_edited(&g, &all, &copies).unwrap();
     for (v, f) in together.iter().enumerate() {
         let alone = rasterised
-            .render_views_without(&g, &[v], &removed)
+            .render_views_edited(&g, &[v], &copies)
             .unwrap()
             .remove(0);
         assert_eq!(f.image(), alone.image(), "view {v}");
@@ -842,6 +911,7 @@ fn a_noisy_copy_of_the_scene_is_rasterised_even_where_views_are_replayed() {
     .apply(&g)
     .unwrap();
     let removed: Vec<bool> = (0..g.len()).map(|i| i % 4 == 1).collect();
+    let copies: Vec<u8> = removed.iter().map(|&r| u8::from(!r)).collect();
     let mut replayed = Renderer::new(&views, &opts, true, Rasterizer::Cpu);
     for (v, view) in views.iter().enumerate() {
         let clean = replayed.render_views(&g, &[v]).unwrap().remove(0);
@@ -876,7 +946,7 @@ fn a_noisy_copy_of_the_scene_is_rasterised_even_where_views_are_replayed() {
         assert_eq!(got.sh_dc, exp.sh_dc);
         assert_eq!(got.means, exp.means);
         let m = replayed
-            .rasterise_views(&noisy, &[v], Some(&removed))
+            .rasterise_views(&noisy, &[v], Some(&copies))
             .unwrap()
             .remove(0);
         let gm = replayed
@@ -890,7 +960,7 @@ fn a_noisy_copy_of_the_scene_is_rasterised_even_where_views_are_replayed() {
             }
         }
         assert!(matches!(
-            replayed.rasterise_views(&noisy, &[v], Some(&removed[1..])),
+            replayed.rasterise_views(&noisy, &[v], Some(&copies[1..])),
             Err(RenderError::BadScene(_))
         ));
     }

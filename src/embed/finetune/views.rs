@@ -130,6 +130,9 @@ pub(super) fn views_psnr(renderer: &mut Renderer, g: &Gaussians) -> Result<f32, 
     })
 }
 
+/// An edited copy of the scene ([`edited_scene`]), its clones' originals, and its upload.
+type EditedUpload = (Arc<Gaussians>, Arc<Vec<usize>>, Option<GpuScene>);
+
 /// One view as a step rendered it.
 pub(super) enum Frame {
     Raster(Box<Rendered<f32>>),
@@ -138,16 +141,20 @@ pub(super) enum Frame {
         image: Vec<[f32; 3]>,
     },
     Gpu(Box<GpuRendered>),
-    /// A view with some Gaussians removed: a replay recomposited without them.
+    /// A view with some Gaussians removed or cloned: a replay recomposited with them
+    /// ([`Replay::with_copies`]).
     Removed {
         replay: Box<Replay<f32>>,
         image: Vec<[f32; 3]>,
     },
-    /// A view with some Gaussians removed, rasterised: `scene` is the scene with those
-    /// Gaussians made transparent (what `frame` rendered and back-propagates through).
+    /// A view with some Gaussians removed or cloned, rasterised: `scene` is the edited scene
+    /// ([`edited_scene`]: the removed ones transparent, each clone appended after the scene's
+    /// own Gaussians; what `frame` rendered and back-propagates through), `clones` the
+    /// Gaussian each appended one copies (their gradients are folded back into it).
     Masked {
         frame: Box<Frame>,
         scene: Arc<Gaussians>,
+        clones: Arc<Vec<usize>>,
     },
 }
 
@@ -302,21 +309,22 @@ impl<'a> Renderer<'a> {
         Ok(replays[v].as_ref())
     }
 
-    /// Views `vs` of `g` without the Gaussians marked in `removed` (scene-indexed): each
-    /// recomposited from its replay where there is one, otherwise rasterised with them
-    /// transparent (one copy of the scene, and on the GPU one upload, for all such views).
-    pub fn render_views_without(
+    /// Views `vs` of `g` with `copies[i]` copies of Gaussian i (scene-indexed; 0 removes it,
+    /// 2 clones it, [`Replay::with_copies`]): each recomposited from its replay where there is
+    /// one, otherwise rasterised from a copy of the scene edited by [`edited_scene`] (one copy,
+    /// and on the GPU one upload, for all such views).
+    pub fn render_views_edited(
         &mut self,
         g: &Gaussians,
         vs: &[usize],
-        removed: &[bool],
+        copies: &[u8],
     ) -> Result<Vec<Frame>, RenderError> {
-        check_removal(removed, g)?;
-        let mut masked: Option<(Arc<Gaussians>, Option<GpuScene>)> = None;
+        check_copies(copies, g)?;
+        let mut masked: Option<EditedUpload> = None;
         let mut frames = Vec::with_capacity(vs.len());
         for &v in vs {
             if let Some(r) = self.replay(g, v)? {
-                let replay = r.without(removed)?;
+                let replay = r.with_copies(copies)?;
                 let image = replay.render(g)?;
                 frames.push(Frame::Removed {
                     replay: Box::new(replay),
@@ -326,38 +334,40 @@ impl<'a> Renderer<'a> {
             }
             // No replay of view `v` exists (or may be recorded): this rasterises.
             if masked.is_none() {
-                let mut m = g.clone();
-                make_transparent(&mut m, removed);
+                let (m, clones) = self.edited(g, copies)?;
                 let up = self.upload(&m)?;
-                masked = Some((Arc::new(m), up));
+                masked = Some((Arc::new(m), Arc::new(clones), up));
             }
-            let (scene, up) = masked.as_ref().expect("set above");
+            let (scene, clones, up) = masked.as_ref().expect("set above");
             let frame = self.render_with(scene, v, up.as_ref(), self.resident)?;
             frames.push(Frame::Masked {
                 frame: Box::new(frame),
                 scene: scene.clone(),
+                clones: clones.clone(),
             });
         }
         Ok(frames)
     }
 
     /// Views `vs` of a perturbed copy `scene` of the finetuned scene (same Gaussians, moved),
-    /// rasterised whatever the replays (they hold the unperturbed geometry), with the
-    /// Gaussians marked in `removed` made transparent. Back-propagating through a frame gives
-    /// ∂L/∂θ at the perturbed parameters.
+    /// rasterised whatever the replays (they hold the unperturbed geometry), edited by
+    /// `copies` when given ([`edited_scene`]). Back-propagating through a frame gives ∂L/∂θ at
+    /// the perturbed parameters.
     pub fn rasterise_views(
         &mut self,
         scene: &Gaussians,
         vs: &[usize],
-        removed: Option<&[bool]>,
+        copies: Option<&[u8]>,
     ) -> Result<Vec<Frame>, RenderError> {
-        let mut masked = scene.clone();
-        if let Some(removed) = removed {
-            check_removal(removed, scene)?;
-            make_transparent(&mut masked, removed);
-        }
+        let (masked, clones) = match copies {
+            Some(copies) => {
+                check_copies(copies, scene)?;
+                self.edited(scene, copies)?
+            }
+            None => (scene.clone(), Vec::new()),
+        };
         let up = self.upload(&masked)?;
-        let masked = Arc::new(masked);
+        let (masked, clones) = (Arc::new(masked), Arc::new(clones));
         vs.iter()
             .map(|&v| {
                 let frame = match &self.rasterizer {
@@ -378,9 +388,22 @@ impl<'a> Renderer<'a> {
                 Ok(Frame::Masked {
                     frame: Box::new(frame),
                     scene: masked.clone(),
+                    clones: clones.clone(),
                 })
             })
             .collect()
+    }
+
+    /// `g` edited as `copies` says, for the rasterizer at hand: [`edited_scene`] on the CPU;
+    /// on the GPU, whose backward stays scene-shaped, removal only (an error for clones).
+    fn edited(&self, g: &Gaussians, copies: &[u8]) -> Result<(Gaussians, Vec<usize>), RenderError> {
+        match self.rasterizer {
+            Rasterizer::Cpu => Ok(edited_scene(g, copies)),
+            Rasterizer::Gpu(_) if copies.iter().any(|&c| c > 1) => Err(RenderError::Device(
+                "cloning in the EOT term runs on the CPU rasterizer".into(),
+            )),
+            Rasterizer::Gpu(_) => Ok((edited_scene(g, copies).0, Vec::new())),
+        }
     }
 
     /// `frame`'s image as a burn tensor `[1, 3, H, W]` on `device`, copied on the device, when
@@ -435,7 +458,15 @@ impl<'a> Renderer<'a> {
                 .expect("a replayed frame has its replay")
                 .backward_each(g, d_images),
             Frame::Removed { replay, .. } => replay.backward_each(g, d_images),
-            Frame::Masked { frame, scene } => self.backward_each(scene, frame, d_images),
+            Frame::Masked {
+                frame,
+                scene,
+                clones,
+            } => Ok(self
+                .backward_each(scene, frame, d_images)?
+                .into_iter()
+                .map(|d| fold_clones(d, clones))
+                .collect()),
         }
     }
 
@@ -490,24 +521,67 @@ fn not_on_the_gpu() -> RenderError {
     RenderError::Device("a device-side gradient for a frame that is not on the GPU".into())
 }
 
-/// A removal mask must mark each Gaussian of the scene.
-fn check_removal(removed: &[bool], g: &Gaussians) -> Result<(), RenderError> {
-    if removed.len() != g.len() {
+/// A count of copies for each Gaussian of the scene.
+fn check_copies(copies: &[u8], g: &Gaussians) -> Result<(), RenderError> {
+    if copies.len() != g.len() {
         return Err(RenderError::BadScene(format!(
-            "a removal mask of {} Gaussians for a scene of {}",
-            removed.len(),
+            "copies of {} Gaussians for a scene of {}",
+            copies.len(),
             g.len()
         )));
     }
     Ok(())
 }
 
-/// Makes the Gaussians marked in `removed` transparent: α = sigmoid(−40) ≈ 4e-18, far below
-/// the 1/255 a Gaussian needs to be drawn.
-fn make_transparent(g: &mut Gaussians, removed: &[bool]) {
-    for (o, &r) in g.opacity_logits.iter_mut().zip(removed) {
-        if r {
+/// `g` as the model attacks edit it, in a form the rasterizer back-propagates through: the
+/// Gaussians with 0 copies made transparent (their gradient is then 0), and c − 1 more copies
+/// of those with c > 1 appended, as [`crate::attack::model::ModelAttack::Clone`] appends them;
+/// returns the scene and, for each appended Gaussian, the one it copies.
+pub(super) fn edited_scene(g: &Gaussians, copies: &[u8]) -> (Gaussians, Vec<usize>) {
+    let mut m = g.clone();
+    // α = sigmoid(−40) ≈ 4e-18, far below the 1/255 a Gaussian needs to be drawn.
+    for (o, &c) in m.opacity_logits.iter_mut().zip(copies) {
+        if c == 0 {
             *o = -40.0;
         }
     }
+    let clones: Vec<usize> = copies
+        .iter()
+        .enumerate()
+        .flat_map(|(i, &c)| std::iter::repeat_n(i, usize::from(c.saturating_sub(1))))
+        .collect();
+    if clones.is_empty() {
+        return (m, clones);
+    }
+    let idx: Vec<usize> = (0..g.len()).chain(clones.iter().copied()).collect();
+    (crate::embed::subset(&m, &idx), clones)
+}
+
+/// The gradient of an [`edited_scene`] folded back onto the scene: each appended copy's
+/// gradient added to its original's (they share every parameter).
+fn fold_clones(mut d: Gaussians, clones: &[usize]) -> Gaussians {
+    if clones.is_empty() {
+        return d;
+    }
+    let n = d.len() - clones.len();
+    let rl = d.rest_len();
+    for (k, &i) in clones.iter().enumerate() {
+        let j = n + k;
+        let add = |a: &mut [f32], b: &[f32]| a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
+        let (m, s, r, dc) = (d.means[j], d.log_scales[j], d.rotations[j], d.sh_dc[j]);
+        add(&mut d.means[i], &m);
+        add(&mut d.log_scales[i], &s);
+        add(&mut d.rotations[i], &r);
+        add(&mut d.sh_dc[i], &dc);
+        d.opacity_logits[i] += d.opacity_logits[j];
+        let rest: Vec<f32> = d.sh_rest[j * rl..(j + 1) * rl].to_vec();
+        add(&mut d.sh_rest[i * rl..(i + 1) * rl], &rest);
+    }
+    d.means.truncate(n);
+    d.log_scales.truncate(n);
+    d.rotations.truncate(n);
+    d.opacity_logits.truncate(n);
+    d.sh_dc.truncate(n);
+    d.sh_rest.truncate(n * rl);
+    d
 }

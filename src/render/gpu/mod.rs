@@ -100,7 +100,7 @@ struct OptimPipelines {
     adam_step: wgpu::ComputePipeline,
     grad_norm: wgpu::ComputePipeline,
     shrink: wgpu::ComputePipeline,
-    mask_removed: wgpu::ComputePipeline,
+    edit_copies: wgpu::ComputePipeline,
 }
 
 /// Runs a wgpu future to completion (native wgpu resolves them without an executor).
@@ -351,7 +351,7 @@ impl GpuRenderer {
                 adam_step: pipeline(&device, &optim, "adam_step"),
                 grad_norm: pipeline(&device, &optim, "grad_norm"),
                 shrink: pipeline(&device, &optim, "shrink"),
-                mask_removed: pipeline(&device, &optim, "mask_removed"),
+                edit_copies: pipeline(&device, &optim, "edit_copies"),
             },
         }
     }

@@ -200,13 +200,16 @@ impl GpuRenderer {
         )
     }
 
-    /// A copy of the live parameters with the Gaussians marked in `removed` transparent, for
-    /// the renders of the EOT term's removal.
-    pub fn params_without(&self, p: &DeviceParams, removed: &[bool]) -> Result<GpuScene, GpuError> {
-        if removed.len() != p.len() {
+    /// A copy of the live parameters with the Gaussians of 0 `copies` transparent, for the
+    /// renders of the EOT term's removal. Clones (c > 1) are refused: the device's backward
+    /// is scene-shaped, and one Gaussian as opaque as its copies is not their render (it is
+    /// fainter towards its edges).
+    pub fn params_edited(&self, p: &DeviceParams, copies: &[u8]) -> Result<GpuScene, GpuError> {
+        if copies.len() != p.len() || copies.iter().any(|&c| c > 1) {
             return Err(RenderError::BadScene(format!(
-                "a removal mask of {} Gaussians for a scene of {}",
-                removed.len(),
+                "copies of {} Gaussians for a scene of {} (on the GPU 0 or 1 each: cloning \
+                 in the EOT term runs on the CPU rasterizer)",
+                copies.len(),
                 p.len()
             ))
             .into());
@@ -214,18 +217,18 @@ impl GpuRenderer {
         let bytes = p.scene.params.size();
         let copy = self.scoped(|| {
             let copy = self.sliced_storage("params without", bytes)?;
-            let flags: Vec<u32> = removed.iter().map(|&r| u32::from(r)).collect();
-            let removed = self.storage("removed", (flags.len() as u64 * 4).max(4))?;
+            let flags: Vec<u32> = copies.iter().map(|&c| u32::from(c)).collect();
+            let copies = self.storage("copies", (flags.len() as u64 * 4).max(4))?;
             self.queue
-                .write_buffer(&removed, 0, bytemuck::cast_slice(&flags));
+                .write_buffer(&copies, 0, bytemuck::cast_slice(&flags));
             let mut encoder = self.device.create_command_encoder(&Default::default());
             encoder.copy_buffer_to_buffer(&p.scene.params, 0, &copy, 0, bytes);
             self.queue.submit([encoder.finish()]);
             let step = step_uniform(p, 0, 0, [0.0; 4]);
             self.run_optim(
-                &self.pipes.optim.mask_removed,
+                &self.pipes.optim.edit_copies,
                 p,
-                &[(0, &self.uniform(&step)), (11, &removed)],
+                &[(0, &self.uniform(&step)), (11, &copies)],
                 &[&copy],
                 &[1],
             )?;

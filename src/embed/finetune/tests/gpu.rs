@@ -316,21 +316,30 @@ fn the_device_optimiser_steps_as_the_host_one_does() {
         for i in (0..n).filter(|&i| !plan.bounded[i]) {
             assert_eq!(shrunk.sh_dc[i], host.sh_dc[i]);
         }
-        // A removal's transparent copy renders as the host's.
-        let removed: Vec<bool> = (0..n).map(|i| i % 4 == 0).collect();
-        let copy = gpu.params_without(&dev, &removed).unwrap();
+        // A removal's edited copy renders as the host's; clones are refused on the device.
+        let copies: Vec<u8> = (0..n).map(|i| u8::from(i % 4 != 0)).collect();
+        let copy = gpu.params_edited(&dev, &copies).unwrap();
         let mut masked = shrunk.clone();
-        for (o, &r) in masked.opacity_logits.iter_mut().zip(&removed) {
-            if r {
+        for (o, &c) in masked.opacity_logits.iter_mut().zip(&copies) {
+            if c == 0 {
                 *o = -40.0;
             }
         }
         let cam = &views[0].camera;
         let a = gpu.render_uploaded(&copy, cam, &opts).unwrap();
         let b = gpu.render(&masked, cam, &opts).unwrap();
-        assert_eq!(a.image, b.image);
+        let worst = a
+            .image
+            .iter()
+            .zip(&b.image)
+            .flat_map(|(p, q)| (0..3).map(move |c| (p[c] - q[c]).abs()))
+            .fold(0.0f32, f32::max);
+        assert!(worst < 1e-4, "largest difference {worst}");
+        let mut cloned = copies.clone();
+        cloned[1] = 2;
+        assert!(gpu.params_edited(&dev, &cloned).is_err());
         // Bad shapes are typed errors and change nothing.
-        assert!(gpu.params_without(&dev, &removed[1..]).is_err());
+        assert!(gpu.params_edited(&dev, &copies[1..]).is_err());
         let small = crate::scene::synthetic::object_scene(10, 1, 3);
         let other = gpu.upload_grads(&small).unwrap();
         assert!(

@@ -1,6 +1,6 @@
 //! Measurements on ../shared/data (ignored tests; docs/RESULTS.md):
 //! - `removal_replay_gap`: how far the EOT term's removal — a replay recomposited without the
-//!   removed Gaussians ([`crate::render::Replay::without`]) — is from the attack itself (the
+//!   removed Gaussians ([`crate::render::Replay::with_copies`]) — is from the attack itself (the
 //!   scene rasterised with them gone), per shared scene.
 //!
 //! `cargo test --lib -- --ignored removal_replay_gap --nocapture`.
@@ -52,14 +52,16 @@ fn removal_replay_gap() {
         let mut rasterised = Renderer::new(&vs, &ro, false, Rasterizer::Cpu);
         for (fraction, seed) in [(0.2f64, 1u64), (0.2, 2), (0.1, 3)] {
             let mut rng = crate::attack::diff::EotRng::new(seed);
-            let removed: Vec<bool> = (0..g.len()).map(|_| rng.uniform() < fraction).collect();
+            let removed: Vec<u8> = (0..g.len())
+                .map(|_| u8::from(rng.uniform() >= fraction))
+                .collect();
             for (v, view) in vs.iter().enumerate() {
                 let a = replayed
-                    .render_views_without(&g, &[v], &removed)
+                    .render_views_edited(&g, &[v], &removed)
                     .unwrap()
                     .remove(0);
                 let b = rasterised
-                    .render_views_without(&g, &[v], &removed)
+                    .render_views_edited(&g, &[v], &removed)
                     .unwrap()
                     .remove(0);
                 let clean = &view.target;
