@@ -80,9 +80,20 @@ fn the_quick_bench_detects_the_defaults_watermark_on_unseen_views() {
     let unmarked = row(run, "unmarked");
     assert_eq!(unmarked["detected"], false, "{unmarked}");
     assert_eq!(unmarked["detection_rate_per_view"], 0.0, "{unmarked}");
-    // The markdown table names the scene and says which targets were missed.
+    // Each model attack is read over two draws (the quick bench's), the targets on their mean.
+    let remove = row(run, "remove_20");
+    let draws = remove["draws"].as_array().expect("draws");
+    assert_eq!(draws.len(), 2, "{remove}");
+    let mean = draws.iter().map(|d| d.as_f64().unwrap()).sum::<f64>() / 2.0;
+    assert!((remove["bit_accuracy"].as_f64().unwrap() - mean).abs() < 1e-12);
+    // The markdown table names the scene and says which targets were missed, and gives each
+    // model attack's worst draw.
     let table = std::fs::read_to_string(&md).unwrap();
     assert!(table.starts_with("| scene |") && table.contains("donut"));
+    assert!(
+        table.contains("remove_20") && table.contains("(worst "),
+        "{table}"
+    );
     // The embedding it judged is kept for a second look: the watermarked scene, its report
     // (the message, the decoder) and one line per finetuning step.
     let kept = dir.path().join("assets/donut-32-seed0");

@@ -122,6 +122,71 @@ fn embed_writes_scene_attribution_and_report_that_agree() {
     }
     assert!(e["psnr"].as_f64().unwrap() > 10.0);
 
+    // Each model attack is drawn several times (seeds --seed, --seed + 1, …) and its row reads
+    // their mean; one draw at seed 6 is the second of three from seed 5.
+    let model_eval = |seed: &str, draws: &str| {
+        ok_json(
+            &bin()
+                .arg("eval")
+                .arg(&input)
+                .arg(&out)
+                .args(VIEWS)
+                .args([
+                    "--message",
+                    "c0ffee42",
+                    "--seed",
+                    seed,
+                    "--model-draws",
+                    draws,
+                ])
+                .output()
+                .unwrap(),
+        )
+    };
+    let rows_of = |e: &serde_json::Value| -> Vec<serde_json::Value> {
+        e["rows"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|r| r["kind"] == "model")
+            .cloned()
+            .collect()
+    };
+    let three = rows_of(&model_eval("5", "3"));
+    let one = rows_of(&model_eval("6", "1"));
+    assert_eq!(
+        three.len(),
+        4,
+        "noise_0.1, noise_0.1_scaled, remove_20, clone_20"
+    );
+    for (r3, r1) in three.iter().zip(&one) {
+        assert_eq!(r3["name"], r1["name"]);
+        let d: Vec<f64> = r3["draws"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_f64().unwrap())
+            .collect();
+        assert_eq!(d.len(), 3, "{r3}");
+        let mean = d.iter().sum::<f64>() / 3.0;
+        assert!(
+            (r3["bit_accuracy"].as_f64().unwrap() - mean).abs() < 1e-12,
+            "{r3}"
+        );
+        assert_eq!(r1["draws"].as_array().unwrap().len(), 1);
+        assert_eq!(r1["bit_accuracy"].as_f64().unwrap(), d[1], "{r3} {r1}");
+    }
+    let none = bin()
+        .arg("eval")
+        .arg(&input)
+        .arg(&out)
+        .args(VIEWS)
+        .args(["--message", "c0ffee42", "--model-draws", "0"])
+        .output()
+        .unwrap();
+    assert!(!none.status.success());
+    assert!(String::from_utf8_lossy(&none.stderr).contains("--model-draws"));
+
     let renders = dir.path().join("renders");
     assert!(
         bin()

@@ -139,6 +139,18 @@ impl ModelAttack {
         ]
     }
 
+    /// The same attack with another seed (another draw of the Gaussians it removes or clones,
+    /// of the noise it adds).
+    pub fn reseeded(&self, seed: u64) -> ModelAttack {
+        let mut a = self.clone();
+        match &mut a {
+            ModelAttack::Remove { seed: s, .. }
+            | ModelAttack::Clone { seed: s, .. }
+            | ModelAttack::Noise { seed: s, .. } => *s = seed,
+        }
+        a
+    }
+
     /// The attacked copy of `g`.
     pub fn apply(&self, g: &Gaussians) -> Result<Gaussians, ModelAttackError> {
         let frac_ok = |f: f32| (0.0..=1.0).contains(&f);

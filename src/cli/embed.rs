@@ -497,6 +497,10 @@ pub(crate) struct EvalSceneArgs {
     /// Seed of the random attacks.
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Draws of each model attack (seeds --seed, --seed + 1, …): each row reports their mean
+    /// and keeps each draw's accuracy.
+    #[arg(long, default_value_t = crate::verify::eval::MODEL_DRAWS)]
+    model_draws: usize,
     /// Print JSON (the only output format; accepted for scripts).
     #[arg(long)]
     json: bool,
@@ -511,6 +515,7 @@ pub(crate) struct EvalSceneArgs {
 }
 
 pub(crate) fn eval_scene_cmd(a: &EvalSceneArgs) -> Result<()> {
+    anyhow::ensure!(a.model_draws >= 1, "--model-draws must be at least 1");
     let hex = a.message.trim().trim_start_matches("0x");
     let message = parse_hex(hex, hex.len() * 4)?;
     let (_, original) = load(&a.original, &a.limits)?;
@@ -533,6 +538,7 @@ pub(crate) fn eval_scene_cmd(a: &EvalSceneArgs) -> Result<()> {
         },
         fpr: a.fpr,
         seed: a.seed,
+        model_draws: a.model_draws,
     };
     eprintln!("evaluating on {} held-out views…", held.len());
     let t = std::time::Instant::now();

@@ -488,6 +488,10 @@ pub struct QualityArgs {
     weights_dir: Option<PathBuf>,
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Draws of each model attack (seeds --seed, --seed + 1, …; default 8, 2 with --quick):
+    /// the rows and the targets read their mean, the markdown their worst too.
+    #[arg(long)]
+    model_draws: Option<usize>,
     /// Keep every embedding in this folder: `{scene}-{bits}-seed{seed}.ply` (the watermarked
     /// scene), `.report.json` (its report, with the message) and `.steps.jsonl` (every
     /// finetuning step), for `splatmark eval`, `verify` or `render` afterwards.
@@ -552,6 +556,10 @@ pub fn bench_cmd(c: &BenchCommand, progress: super::progress::ProgressMode) -> R
     o.weights_dir = a.weights_dir.clone();
     o.assets_dir = a.assets.clone();
     o.seed = a.seed;
+    if let Some(n) = a.model_draws {
+        anyhow::ensure!(n >= 1, "--model-draws must be at least 1");
+        o.model_draws = n;
+    }
     let device = DeviceChoice::Flex.device().autodiff();
     let mut log = super::progress::BenchProgress::new(progress);
     let report = bench::run(&o, &device, &mut log)?;

@@ -128,6 +128,9 @@ pub struct QualityOptions {
     pub fpr: f64,
     /// Seed of the payloads and attacks.
     pub seed: u64,
+    /// Draws of each model attack ([`EvalSettings::model_draws`]; the targets are checked on
+    /// their mean).
+    pub model_draws: usize,
     /// Folder with `decoder-{bits}.bpk` artifacts; the shipped weights when absent.
     pub weights_dir: Option<PathBuf>,
     /// Folder to keep each embedding in ([`keep_asset`]): the watermarked scene, its report
@@ -169,6 +172,7 @@ impl QualityOptions {
             embed: EmbedOptions::default(),
             fpr: 1e-6,
             seed: 0,
+            model_draws: crate::verify::eval::MODEL_DRAWS,
             weights_dir: None,
             assets_dir: None,
         }
@@ -187,6 +191,7 @@ impl QualityOptions {
             train_views: Some(16),
             eval_views: 4,
             eval_azimuth_offset_deg: 0.5 * 360.0 / 16.0,
+            model_draws: 2,
             ..Self::full(scenes_dir)
         }
     }
@@ -533,6 +538,7 @@ pub fn run(
                 render: opts.embed.render_options(),
                 fpr: opts.fpr,
                 seed: opts.seed,
+                model_draws: opts.model_draws,
             };
             if let Some(c) = &out.report.choice {
                 log.line(&format!("  {}", c.describe()));
@@ -687,6 +693,7 @@ mod tests {
             detection_rate_per_view: 0.0,
             psnr_vs_original: None,
             psnr_on_asset_vs_original: None,
+            draws: Vec::new(),
         }
     }
 

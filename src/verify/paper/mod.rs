@@ -426,6 +426,7 @@ pub fn run(
                 render: eo.render_options(),
                 fpr: opts.fpr,
                 seed,
+                ..EvalSettings::default()
             };
             let t1 = Instant::now();
             let eval = evaluate_scene(&f.scene, &out.scene, &test, &model, &payload, &settings)?;

@@ -341,6 +341,7 @@ pub(crate) mod tests {
             detection_rate_per_view: 0.0,
             psnr_vs_original: None,
             psnr_on_asset_vs_original: None,
+            draws: Vec::new(),
         };
         PaperRun {
             dataset: dataset.into(),
