@@ -753,6 +753,28 @@ mod tests {
             })
         );
         assert_eq!(clean.describe(), "clean (126 of 128 bits; 127 needed)");
+        // A model attack drawn 8 times counts each draw's bits: 4 views × 32 bits × 8.
+        let mut drawn = eval.clone();
+        let remove = drawn
+            .rows
+            .iter_mut()
+            .find(|r| r.name == "remove_20")
+            .unwrap();
+        remove.draws = vec![1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 0.9375];
+        remove.bit_accuracy = remove.draws.iter().sum::<f64>() / 8.0;
+        let remove = check(&drawn, 32)
+            .into_iter()
+            .find(|t| t.name == "remove_20")
+            .expect("a removal target");
+        assert!(remove.met);
+        assert_eq!(
+            remove.bits,
+            Some(BitCount {
+                right: 1016,
+                counted: 1024,
+                needed: 1006
+            })
+        );
         // A target that is an exact number of bits asks for that number, not one more.
         assert_eq!(BitCount::of(0.5, 2, 32, 0.5).needed, 32);
         assert!(

@@ -12,7 +12,8 @@ pub struct TargetCheck {
     /// `value ≥ target` is met (for "unmarked_detected", 0 = not detected is met).
     pub target: f64,
     pub met: bool,
-    /// Bit-accuracy targets: the bits the figure counts (views × message bits), how many of
+    /// Bit-accuracy targets: the bits the figure counts (views × message bits, × draws for a
+    /// model attack), how many of
     /// them were right, and how many the target needs — the judge's resolution (on udon's two
     /// held-out cameras at 32 bits one bit is 1.6 points).
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -95,7 +96,9 @@ pub fn check(eval: &SceneEval, bits: usize) -> Vec<TargetCheck> {
                 .iter()
                 .find(|r| r.name == name)
                 .map_or((f64::NAN, None), |r| {
-                    let count = BitCount::of(r.bit_accuracy, eval.views, bits, target);
+                    // A model attack's row is the mean over its draws: each draw's views count.
+                    let views = eval.views * r.draws.len().max(1);
+                    let count = BitCount::of(r.bit_accuracy, views, bits, target);
                     (r.bit_accuracy, Some(count))
                 }),
         };
