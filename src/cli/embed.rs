@@ -350,8 +350,10 @@ fn report_progress(bar: &mut Progress, p: &crate::embed::pipeline::Progress, eve
         ),
         Phase::Finetune => {
             let Some(s) = p.log else { return };
+            // After a decoder switch `p.step` counts on from the discarded steps (`s.step` is
+            // the run's own).
             if s.step == 1 && !bar.lines() {
-                bar.phase("finetune", p.total as u64);
+                bar.phase_from("finetune", p.total as u64, p.step.saturating_sub(1) as u64);
             }
             let line = format!(
                 "L_wm {:.4} (bce clean {:.4}, eot {:.4}) | bits clean {:.3} eot {:.3} | L_vis {:.4} | {:.2} dB | {:.2} s/step",
@@ -366,10 +368,10 @@ fn report_progress(bar: &mut Progress, p: &crate::embed::pipeline::Progress, eve
             );
             if bar.lines() {
                 if s.step % every == 0 || s.step == 1 {
-                    bar.println(&format!("step {}/{} | {line}", s.step, p.total));
+                    bar.println(&format!("step {}/{} | {line}", p.step, p.total));
                 }
             } else {
-                bar.step(s.step as u64, &line);
+                bar.step(p.step as u64, &line);
             }
         }
         Phase::Done => bar.finish(),

@@ -31,6 +31,8 @@ pub(crate) struct Progress {
     bar: Option<ProgressBar>,
     phase: String,
     total: u64,
+    /// Steps already done when the phase started (its rate counts the steps since).
+    first: u64,
     started: Instant,
     last_json: Option<Instant>,
 }
@@ -51,6 +53,7 @@ impl Progress {
             bar: None,
             phase: String::new(),
             total: 0,
+            first: 0,
             started: Instant::now(),
             last_json: None,
         }
@@ -63,9 +66,17 @@ impl Progress {
 
     /// A new phase of `total` steps (0: a phase without steps, shown as a spinner).
     pub(crate) fn phase(&mut self, name: &str, total: u64) {
+        self.phase_from(name, total, 0);
+    }
+
+    /// A new phase of `total` steps of which `first` are already done (an embedding that
+    /// switched decoders counts on from the steps it discarded; its rate and ETA read the
+    /// steps since).
+    pub(crate) fn phase_from(&mut self, name: &str, total: u64, first: u64) {
         self.finish_bar();
         self.phase = name.to_string();
         self.total = total;
+        self.first = first.min(total);
         self.started = Instant::now();
         self.last_json = None;
         match self.mode {
@@ -91,6 +102,10 @@ impl Progress {
                     b
                 };
                 bar.set_prefix(name.to_string());
+                if self.first > 0 {
+                    bar.set_position(self.first);
+                    bar.reset_eta();
+                }
                 self.bar = Some(bar);
             }
             ProgressMode::Lines => eprintln!("{name}…"),
@@ -110,7 +125,7 @@ impl Progress {
             }
             ProgressMode::Json => {
                 let due = self.last_json.is_none_or(|t| t.elapsed() >= JSON_EVERY);
-                if due || step == 1 || step == self.total {
+                if due || step == self.first + 1 || step == self.total {
                     self.json(step, message);
                 }
             }
@@ -160,7 +175,7 @@ impl Progress {
     fn json(&mut self, step: u64, message: &str) {
         let elapsed = self.started.elapsed().as_secs_f64();
         let rate = if elapsed > 0.0 {
-            step as f64 / elapsed
+            step.saturating_sub(self.first) as f64 / elapsed
         } else {
             0.0
         };

@@ -158,8 +158,14 @@ async fn worker_loop(ctx: Arc<Ctx>, w: WorkerSpec) {
     tracing::info!(worker = %w.name, "worker stopped");
 }
 
-/// Progress of the running job as the heartbeat reports it.
-fn update(p: &Progress, started: &mut Option<Instant>) -> ProgressUpdate {
+/// Progress of the running job as the heartbeat reports it. `clock`: when the steps being
+/// timed started, and the step count then.
+fn update(p: &Progress, clock: &mut Option<(Instant, usize)>) -> ProgressUpdate {
+    update_at(p, clock, Instant::now())
+}
+
+/// [`update`] at `now`.
+fn update_at(p: &Progress, clock: &mut Option<(Instant, usize)>, now: Instant) -> ProgressUpdate {
     let phase = match p.phase {
         Phase::Targets => "targets",
         Phase::Plan => "plan",
@@ -167,17 +173,18 @@ fn update(p: &Progress, started: &mut Option<Instant>) -> ProgressUpdate {
         Phase::Finetune => "finetune",
         Phase::Done => "publish",
     };
-    let eta_seconds = match (p.phase, *started) {
-        (Phase::Finetune, Some(t0)) if p.step > 0 => {
-            let per_step = t0.elapsed().as_secs_f64() / p.step as f64;
+    let eta_seconds = match (p.phase, *clock) {
+        (Phase::Finetune, Some((t0, base))) if p.log.is_some() && p.step > base => {
+            let per_step = now.duration_since(t0).as_secs_f64() / (p.step - base) as f64;
             Some(per_step * p.total.saturating_sub(p.step) as f64)
         }
         _ => None,
     };
-    // The steps' clock starts when finetuning does (its step-0 report), so the ETA counts
-    // steps only.
-    if p.phase != Phase::Finetune || p.step == 0 || started.is_none() {
-        *started = Some(Instant::now());
+    // The steps' clock starts at each phase's report (step reports carry their step's log),
+    // so the ETA counts the steps since finetuning started — or restarted after a decoder
+    // switch, counting on from the discarded steps.
+    if p.log.is_none() || clock.is_none() {
+        *clock = Some((now, p.step));
     }
     ProgressUpdate {
         phase: phase.into(),
@@ -249,7 +256,7 @@ async fn run_job(ctx: &Ctx, w: &WorkerSpec, c: Claimed) {
             let decoders = Pair::resolve(weights.as_deref(), bits, &device.autodiff())
                 .map_err(|e| JobError::Decoder(e.to_string()))?;
             let mut out = std::io::BufWriter::new(tmp.as_file_mut());
-            let mut started = None;
+            let mut clock = None;
             execute(
                 &bytes,
                 &format,
@@ -260,7 +267,7 @@ async fn run_job(ctx: &Ctx, w: &WorkerSpec, c: Claimed) {
                 &limits,
                 &mut out,
                 |p| {
-                    let _ = ptx.send(Some(update(&p, &mut started)));
+                    let _ = ptx.send(Some(update(&p, &mut clock)));
                     if cancel_b.load(Ordering::Relaxed) {
                         ControlFlow::Break(())
                     } else {
@@ -505,6 +512,44 @@ pub(crate) fn redact_paths(text: &str, data_dir: &std::path::Path) -> String {
         i += c.len_utf8();
     }
     out
+}
+
+#[cfg(test)]
+mod progress_tests {
+    use super::*;
+    use crate::embed::finetune::StepLog;
+
+    #[test]
+    fn the_eta_counts_the_steps_since_finetuning_restarted_after_a_switch() {
+        let t0 = Instant::now();
+        let at = |s: u64| t0 + Duration::from_secs(s);
+        let phase = |step, total| Progress {
+            phase: Phase::Finetune,
+            step,
+            total,
+            log: None,
+        };
+        let step = |step, total| Progress {
+            phase: Phase::Finetune,
+            step,
+            total,
+            log: Some(StepLog::default()),
+        };
+        let mut clock = None;
+        // 10 steps in 20 s of 350: 680 s to go.
+        assert_eq!(
+            update_at(&phase(0, 350), &mut clock, at(0)).eta_seconds,
+            None
+        );
+        let u = update_at(&step(10, 350), &mut clock, at(20));
+        assert_eq!((u.step, u.total, u.eta_seconds), (10, 350, Some(680.0)));
+        // A switch at step 70: calibration again, then the coarse run counts on from 70.
+        update_at(&phase(70, 420), &mut clock, at(140));
+        update_at(&phase(70, 420), &mut clock, at(200));
+        let u = update_at(&step(75, 420), &mut clock, at(205));
+        // 5 steps in 5 s since the restart (not 75 in 205 s): 345 s to go.
+        assert_eq!((u.step, u.total, u.eta_seconds), (75, 420, Some(345.0)));
+    }
 }
 
 #[cfg(test)]

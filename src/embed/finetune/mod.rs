@@ -107,7 +107,7 @@ pub enum FinetuneError {
 }
 
 /// Numbers of one step.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct StepLog {
     /// 1-based.
     pub step: usize,

@@ -328,16 +328,18 @@ pub fn embed(
     check_coarse_margin(opts.coarse_margin_db).map_err(EmbedError::Invalid)?;
     // The most steps finetuning may take (it may stop early when `extra_steps` > 0).
     let total = opts.finetune.steps + opts.finetune.extra_steps;
-    let report_phase = |p: &mut dyn FnMut(Progress) -> ControlFlow<()>, phase| match p(Progress {
-        phase,
-        step: 0,
-        total,
-        log: None,
-    }) {
-        ControlFlow::Continue(()) => Ok(()),
-        ControlFlow::Break(()) => Err(EmbedError::Cancelled),
-    };
-    report_phase(&mut progress, Phase::Targets)?;
+    // A phase's report: `done` steps already done (those a decoder switch discarded).
+    let report_phase =
+        |p: &mut dyn FnMut(Progress) -> ControlFlow<()>, phase, done| match p(Progress {
+            phase,
+            step: done,
+            total: done + total,
+            log: None,
+        }) {
+            ControlFlow::Continue(()) => Ok(()),
+            ControlFlow::Break(()) => Err(EmbedError::Cancelled),
+        };
+    report_phase(&mut progress, Phase::Targets, 0)?;
     let ro = opts.render_options();
     let t = Instant::now();
     let mut finetune_cameras = cameras.to_vec();
@@ -384,7 +386,7 @@ pub fn embed(
             .collect()
     };
 
-    report_phase(&mut progress, Phase::Plan)?;
+    report_phase(&mut progress, Phase::Plan, 0)?;
     let t = Instant::now();
     let mut cfg = opts.plan.clone();
     if opts.no_group_mask {
@@ -411,8 +413,10 @@ pub fn embed(
     let t_first = Instant::now();
     let mut writer = &decoders.main;
     let mut choice: Option<DecoderChoice> = None;
+    // Steps a switch discarded: progress counts on from them, so that it never runs backwards.
+    let mut discarded_steps = 0;
     let (projection, reference, ft, t_calibrate, t_ft) = loop {
-        report_phase(&mut progress, Phase::Calibrate)?;
+        report_phase(&mut progress, Phase::Calibrate, discarded_steps)?;
         let t = Instant::now();
         let projection = if opts.projection.is_on() {
             let mut plain = writer.clone();
@@ -450,11 +454,12 @@ pub fn embed(
         };
         let t_calibrate = t.elapsed().as_secs_f64();
 
-        report_phase(&mut progress, Phase::Finetune)?;
+        report_phase(&mut progress, Phase::Finetune, discarded_steps)?;
         let t = Instant::now();
         let deciding = threshold.filter(|_| choice.is_none());
         let mut psnrs = Vec::new();
         let mut made = None;
+        let mut stopped = false;
         let r = finetune(
             p.scene(),
             &p.masks,
@@ -476,17 +481,19 @@ pub fn embed(
                             discarded_s: 0.0,
                         };
                         made = Some(c);
-                        if c.coarse {
-                            return ControlFlow::Break(());
-                        }
                     }
                 }
-                progress(Progress {
+                let flow = progress(Progress {
                     phase: Phase::Finetune,
-                    step: s.step,
-                    total: s.planned,
+                    step: discarded_steps + s.step,
+                    total: discarded_steps + s.planned,
                     log: Some(*s),
-                })
+                });
+                stopped = flow.is_break();
+                if !stopped && s.step == check_at && made.is_some_and(|c| c.coarse) {
+                    return ControlFlow::Break(());
+                }
+                flow
             },
         );
         match r {
@@ -500,11 +507,12 @@ pub fn embed(
                     t.elapsed().as_secs_f64(),
                 );
             }
-            Err(FinetuneError::Cancelled { .. }) if made.is_some_and(|c| c.coarse) => {
+            Err(FinetuneError::Cancelled { .. }) if !stopped && made.is_some_and(|c| c.coarse) => {
                 choice = made.map(|c| DecoderChoice {
                     discarded_s: t_first.elapsed().as_secs_f64(),
                     ..c
                 });
+                discarded_steps = check_at;
                 writer = decoders
                     .coarse
                     .as_ref()
@@ -515,6 +523,7 @@ pub fn embed(
         }
     };
     let ft: Finetuned = ft;
+    let ft_steps = ft.log.last().map_or(total, |s| s.step);
 
     let mut records = p.records;
     for (r, &s) in records.iter_mut().zip(&ft.wm_grad_share) {
@@ -564,10 +573,12 @@ pub fn embed(
         view_projection: projection,
         decoder: writer.digest(),
     };
+    // Every step taken, the discarded ones too: the last report reads done.
+    let done = discarded_steps + ft_steps;
     let _ = progress(Progress {
         phase: Phase::Done,
-        step: total,
-        total,
+        step: done,
+        total: done,
         log: None,
     });
     Ok(Embedded {

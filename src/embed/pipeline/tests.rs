@@ -45,9 +45,12 @@ fn an_asset_with_fidelity_to_spare_is_written_for_the_coarse_decoder() {
     let coarse = pair.coarse.clone().unwrap();
     let go = |pair: &Pair, o: &EmbedOptions| {
         let mut steps = Vec::new();
+        let mut last = 0;
         let e = embed(&g, &cams, &message, pair, o, |p| {
-            if p.phase == Phase::Finetune && p.step > 0 {
-                steps.push(p.step);
+            assert!(p.step >= last, "progress ran back from {last}: {p:?}");
+            last = p.step;
+            if p.log.is_some() {
+                steps.push((p.step, p.total));
             }
             ControlFlow::Continue(())
         })
@@ -63,9 +66,24 @@ fn an_asset_with_fidelity_to_spare_is_written_for_the_coarse_decoder() {
         "{c:?}"
     );
     assert_eq!(switched.report.decoder, coarse.digest());
-    // Progress reports the main decoder's steps before the check, then the coarse run's
-    // from its first step.
-    assert_eq!(steps, [1].into_iter().chain(1..=10).collect::<Vec<_>>());
+    // Progress never runs backwards: the main decoder's steps up to the check, then the
+    // coarse run's counted on from them.
+    let totals: Vec<usize> = steps.iter().map(|s| s.1).collect();
+    let steps: Vec<usize> = steps.iter().map(|s| s.0).collect();
+    assert_eq!(steps, (1..=12).collect::<Vec<_>>());
+    assert_eq!(
+        totals,
+        [10, 10].into_iter().chain([12; 10]).collect::<Vec<_>>()
+    );
+    // Stopping the job at the check is a cancellation, not a switch.
+    let stopped = embed(&g, &cams, &message, &pair, &o, |p| {
+        if p.phase == Phase::Finetune && p.step == 2 {
+            ControlFlow::Break(())
+        } else {
+            ControlFlow::Continue(())
+        }
+    });
+    assert!(matches!(stopped, Err(EmbedError::Cancelled)), "{stopped:?}");
     // The switch restarts from the original: the result is the coarse decoder's own
     // embedding, bit for bit, and so is what the report says a dispute needs.
     let (alone, _) = go(&Pair::single(coarse.clone()), &o);
