@@ -1,6 +1,7 @@
 //! The quality report as markdown tables.
 
-use super::{QualityReport, TargetCheck};
+use super::{QualityReport, QualityRun, TargetCheck};
+use crate::verify::eval::Row;
 
 /// The report as markdown tables (one row per scene × bits; accuracies in %).
 pub fn markdown(report: &QualityReport) -> String {
@@ -120,67 +121,68 @@ pub fn markdown(report: &QualityReport) -> String {
             s += &format!("- {}, {} bits: {}\n", r.scene, r.bits, views.join("; "));
         }
     }
-    let draws: Vec<String> = report
-        .runs
-        .iter()
-        .filter_map(|r| {
-            let parts: Vec<String> = r
-                .eval
-                .rows
-                .iter()
-                .filter(|x| x.draws.len() > 1)
-                .map(|x| {
-                    format!(
-                        "{} {:.1} (worst {:.1} of {})",
-                        x.name,
-                        100.0 * x.bit_accuracy,
-                        100.0 * x.worst_draw(),
-                        x.draws.len()
-                    )
-                })
-                .collect();
-            (!parts.is_empty())
-                .then(|| format!("- {}, {} bits: {}", r.scene, r.bits, parts.join("; ")))
-        })
-        .collect();
-    if !draws.is_empty() {
-        s += "\nThe model attacks' bits right, % (the table's figure is the mean over the draws; the worst draw beside it):\n\n";
-        s += &draws.join("\n");
-        s += "\n";
-    }
-    let costs: Vec<String> = report
-        .runs
-        .iter()
-        .filter_map(|r| {
-            let parts: Vec<String> = r
-                .eval
-                .rows
-                .iter()
-                .filter_map(|x| {
-                    let frame = x.psnr_vs_original?;
-                    Some(match x.psnr_on_asset_vs_original {
-                        Some(a) => format!("{} {frame:.1} dB (on the asset {a:.1} dB)", x.name),
-                        None => format!("{} {frame:.1} dB", x.name),
-                    })
-                })
-                .collect();
-            let scale = r.eval.noise_position_scale.map_or(String::new(), |k| {
+    s += &per_run(
+        report,
+        "The model attacks' bits right, % (the table's figure is the mean over the draws; the worst draw beside it):",
+        |x| {
+            (x.draws.len() > 1).then(|| {
+                format!(
+                    "{} {:.1} (worst {:.1} of {})",
+                    x.name,
+                    100.0 * x.bit_accuracy,
+                    100.0 * x.worst_draw(),
+                    x.draws.len()
+                )
+            })
+        },
+        |_| String::new(),
+    );
+    s += &per_run(
+        report,
+        "What each model attack costs the asset (PSNR of the attacked copy against the original, unseen views; the mean over the draws):",
+        |x| {
+            let frame = x.psnr_vs_original?;
+            Some(match x.psnr_on_asset_vs_original {
+                Some(a) => format!("{} {frame:.1} dB (on the asset {a:.1} dB)", x.name),
+                None => format!("{} {frame:.1} dB", x.name),
+            })
+        },
+        |r| {
+            r.eval.noise_position_scale.map_or(String::new(), |k| {
                 format!(" (scaled: the means' noise × {k:.3})")
-            });
+            })
+        },
+    );
+    s
+}
+
+/// A section of one line per run that has any: what `part` gives of each of the run's rows,
+/// then `tail` of the run; empty when no run has a part.
+fn per_run(
+    report: &QualityReport,
+    heading: &str,
+    part: impl Fn(&Row) -> Option<String>,
+    tail: impl Fn(&QualityRun) -> String,
+) -> String {
+    let lines: Vec<String> = report
+        .runs
+        .iter()
+        .filter_map(|r| {
+            let parts: Vec<String> = r.eval.rows.iter().filter_map(&part).collect();
             (!parts.is_empty()).then(|| {
                 format!(
-                    "- {}, {} bits: {}{scale}",
+                    "- {}, {} bits: {}{}",
                     r.scene,
                     r.bits,
-                    parts.join("; ")
+                    parts.join("; "),
+                    tail(r)
                 )
             })
         })
         .collect();
-    if !costs.is_empty() {
-        s += "\nWhat each model attack costs the asset (PSNR of the attacked copy against the original, unseen views; the mean over the draws):\n\n";
-        s += &costs.join("\n");
-        s += "\n";
+    if lines.is_empty() {
+        String::new()
+    } else {
+        format!("\n{heading}\n\n{}\n", lines.join("\n"))
     }
-    s
 }
