@@ -86,12 +86,22 @@ fn the_quick_bench_detects_the_defaults_watermark_on_unseen_views() {
     assert_eq!(draws.len(), 2, "{remove}");
     let mean = draws.iter().map(|d| d.as_f64().unwrap()).sum::<f64>() / 2.0;
     assert!((remove["bit_accuracy"].as_f64().unwrap() - mean).abs() < 1e-12);
+    // And view by view, in the order of the views: their mean is the row's accuracy.
+    let by_view: Vec<f64> = remove["view_accuracy"]
+        .as_array()
+        .expect("view_accuracy")
+        .iter()
+        .map(|a| a.as_f64().unwrap())
+        .collect();
+    assert_eq!(by_view.len() as u64, eval["views"].as_u64().unwrap());
+    let mean = by_view.iter().sum::<f64>() / by_view.len() as f64;
+    assert!((remove["bit_accuracy"].as_f64().unwrap() - mean).abs() < 1e-12);
     // The markdown table names the scene and says which targets were missed, and gives each
-    // model attack's worst draw.
+    // model attack's worst draw and weakest view.
     let table = std::fs::read_to_string(&md).unwrap();
     assert!(table.starts_with("| scene |") && table.contains("donut"));
     assert!(
-        table.contains("remove_20") && table.contains("(worst "),
+        table.contains("remove_20") && table.contains("(worst ") && table.contains("weakest view "),
         "{table}"
     );
     // The embedding it judged is kept for a second look: the watermarked scene, its report

@@ -74,12 +74,30 @@ pub struct Row {
     /// detected. Empty for other rows (and in reports from before it).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub draws: Vec<f64>,
+    /// Each view's bit accuracy, in the order of the views ([`SceneEval::per_view`]); a model
+    /// attack's is the mean over its draws. `bit_accuracy` is their mean. Empty in reports
+    /// from before it.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub view_accuracy: Vec<f64>,
 }
 
 impl Row {
     /// The lowest of [`Row::draws`] (`bit_accuracy` for a row of one draw).
     pub fn worst_draw(&self) -> f64 {
         self.draws.iter().copied().fold(self.bit_accuracy, f64::min)
+    }
+
+    /// The view that keeps the fewest bits (its index in [`Row::view_accuracy`], its accuracy);
+    /// the first of equals; `None` for a row without per-view figures.
+    pub fn weakest_view(&self) -> Option<(usize, f64)> {
+        self.view_accuracy
+            .iter()
+            .copied()
+            .enumerate()
+            .fold(None, |w, (i, a)| match w {
+                Some((_, b)) if b <= a => w,
+                _ => Some((i, a)),
+            })
     }
 }
 
@@ -103,6 +121,9 @@ fn pooled(draws: Vec<Row>) -> Row {
         psnr_vs_original: mean_opt(&|r| r.psnr_vs_original),
         psnr_on_asset_vs_original: mean_opt(&|r| r.psnr_on_asset_vs_original),
         draws: draws.iter().map(|r| r.bit_accuracy).collect(),
+        view_accuracy: (0..first.view_accuracy.len())
+            .map(|v| mean(&|r| r.view_accuracy[v]))
+            .collect(),
     }
 }
 
@@ -318,8 +339,8 @@ fn row_of_logits(
     message: &[bool],
     fpr: f64,
 ) -> Result<Row, EvalError> {
-    let per_view =
-        logits.iter().map(|z| bit_accuracy(z, message)).sum::<f64>() / logits.len() as f64;
+    let view_accuracy: Vec<f64> = logits.iter().map(|z| bit_accuracy(z, message)).collect();
+    let per_view = view_accuracy.iter().sum::<f64>() / logits.len() as f64;
     let l = message.len();
     let mean: Vec<f32> = (0..l)
         .map(|j| logits.iter().map(|z| z[j]).sum::<f32>() / logits.len() as f32)
@@ -343,6 +364,7 @@ fn row_of_logits(
         psnr_vs_original: None,
         psnr_on_asset_vs_original: None,
         draws: Vec::new(),
+        view_accuracy,
     })
 }
 
@@ -553,6 +575,8 @@ mod tests {
             psnr_vs_original: Some(psnr),
             psnr_on_asset_vs_original: None,
             draws: Vec::new(),
+            // Two views: the first keeps every bit, the second loses what the draw loses.
+            view_accuracy: vec![1.0, 2.0 * acc - 1.0],
         };
         let r = pooled(vec![
             draw(1.0, 1e-9, true, 30.0),
@@ -568,6 +592,12 @@ mod tests {
         assert!((r.detection_rate_per_view - 5.0 / 6.0).abs() < 1e-12);
         assert_eq!(r.psnr_vs_original, Some(32.0));
         assert_eq!(r.psnr_on_asset_vs_original, None);
+        // Each view's accuracy is its mean over the draws; the second view is the weakest.
+        assert_eq!(r.view_accuracy.len(), 2);
+        assert!((r.view_accuracy[0] - 1.0).abs() < 1e-12);
+        assert!((r.view_accuracy[1] - 0.8).abs() < 1e-12);
+        let (v, a) = r.weakest_view().unwrap();
+        assert!(v == 1 && (a - 0.8).abs() < 1e-12, "{v} {a}");
         let all = pooled(vec![
             draw(1.0, 1e-9, true, 30.0),
             draw(0.9, 1e-7, true, 32.0),
@@ -577,6 +607,13 @@ mod tests {
         let one = pooled(vec![draw(0.9, 1e-7, true, 32.0)]);
         assert_eq!(one.worst_draw(), 0.9);
         assert_eq!(one.bit_accuracy, 0.9);
+        assert_eq!(one.view_accuracy, vec![1.0, 2.0 * 0.9 - 1.0]);
+        // Equal views: the first is named; no views, no weakest.
+        let mut even = one.clone();
+        even.view_accuracy = vec![0.75, 0.5, 0.5];
+        assert_eq!(even.weakest_view(), Some((1, 0.5)));
+        even.view_accuracy.clear();
+        assert_eq!(even.weakest_view(), None);
     }
 
     #[test]

@@ -123,11 +123,17 @@ pub fn markdown(report: &QualityReport) -> String {
     }
     s += &per_run(
         report,
-        "The model attacks' bits right, % (the table's figure is the mean over the draws; the worst draw beside it):",
-        |x| {
+        "The model attacks' bits right, % (the table's figure is the mean over the draws; the worst draw beside it, and the view that keeps the fewest bits over the draws):",
+        |r, x| {
             (x.draws.len() > 1).then(|| {
+                let weakest = x
+                    .weakest_view()
+                    .and_then(|(v, a)| Some((r.eval.per_view.get(v)?, a)))
+                    .map_or(String::new(), |(v, a)| {
+                        format!("; weakest view {} {:.1}", v.camera, 100.0 * a)
+                    });
                 format!(
-                    "{} {:.1} (worst {:.1} of {})",
+                    "{} {:.1} (worst {:.1} of {}{weakest})",
                     x.name,
                     100.0 * x.bit_accuracy,
                     100.0 * x.worst_draw(),
@@ -140,7 +146,7 @@ pub fn markdown(report: &QualityReport) -> String {
     s += &per_run(
         report,
         "What each model attack costs the asset (PSNR of the attacked copy against the original, unseen views; the mean over the draws):",
-        |x| {
+        |_, x| {
             let frame = x.psnr_vs_original?;
             Some(match x.psnr_on_asset_vs_original {
                 Some(a) => format!("{} {frame:.1} dB (on the asset {a:.1} dB)", x.name),
@@ -156,19 +162,19 @@ pub fn markdown(report: &QualityReport) -> String {
     s
 }
 
-/// A section of one line per run that has any: what `part` gives of each of the run's rows,
-/// then `tail` of the run; empty when no run has a part.
+/// A section of one line per run that has any: what `part` gives of each of the run's rows
+/// (given the run and the row), then `tail` of the run; empty when no run has a part.
 fn per_run(
     report: &QualityReport,
     heading: &str,
-    part: impl Fn(&Row) -> Option<String>,
+    part: impl Fn(&QualityRun, &Row) -> Option<String>,
     tail: impl Fn(&QualityRun) -> String,
 ) -> String {
     let lines: Vec<String> = report
         .runs
         .iter()
         .filter_map(|r| {
-            let parts: Vec<String> = r.eval.rows.iter().filter_map(&part).collect();
+            let parts: Vec<String> = r.eval.rows.iter().filter_map(|x| part(r, x)).collect();
             (!parts.is_empty()).then(|| {
                 format!(
                     "- {}, {} bits: {}{}",

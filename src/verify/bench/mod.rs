@@ -694,6 +694,7 @@ mod tests {
             psnr_vs_original: None,
             psnr_on_asset_vs_original: None,
             draws: Vec::new(),
+            view_accuracy: Vec::new(),
         }
     }
 

@@ -342,6 +342,7 @@ pub(crate) mod tests {
             psnr_vs_original: None,
             psnr_on_asset_vs_original: None,
             draws: Vec::new(),
+            view_accuracy: Vec::new(),
         };
         PaperRun {
             dataset: dataset.into(),
