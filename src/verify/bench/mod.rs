@@ -33,7 +33,6 @@
 //!
 //! [`markdown`] renders the runs as the table recorded in docs/RESULTS.md.
 
-use std::ops::ControlFlow;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -489,32 +488,15 @@ pub fn run(
                 train.first().map_or(0, |c| c.height),
             ));
             let t0 = Instant::now();
-            let mut last = 0;
             let what = format!("{name} {bits}");
-            let out = embed(&g, &train, &payload, &decoders, &opts.embed, |p| {
-                // The finetuning's steps; the phases before it as phases without steps.
-                let phase = format!("{what} {}", format!("{:?}", p.phase).to_lowercase());
-                let total = if p.phase == crate::embed::pipeline::Phase::Finetune {
-                    p.total
-                } else {
-                    0
-                };
-                log.step(&phase, p.step, total);
-                if p.phase == crate::embed::pipeline::Phase::Calibrate {
-                    // (again after a switch to the coarse decoder: its steps count from 1)
-                    last = 0;
-                }
-                if p.total > 0 && p.step >= last + (p.total / 10).max(1) {
-                    last = p.step;
-                    if let Some(s) = p.log {
-                        log.line(&format!(
-                            "  step {}/{}: train bits {:.3} (EOT {:.3}), {:.1} dB",
-                            p.step, p.total, s.bit_acc_clean, s.bit_acc_eot, s.psnr
-                        ));
-                    }
-                }
-                ControlFlow::Continue(())
-            })?;
+            let out = embed(
+                &g,
+                &train,
+                &payload,
+                &decoders,
+                &opts.embed,
+                super::embed_progress(log, &what),
+            )?;
             let embed_s = t0.elapsed().as_secs_f64();
             let t = &out.report.timings;
             let st = &t.steps;

@@ -10,7 +10,6 @@
 //! LPIPS is not reported: no pretrained LPIPS network loads here without a download, and a
 //! substitute would not be LPIPS.
 
-use std::ops::ControlFlow;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -394,32 +393,15 @@ pub fn run(
                 f.scene.len()
             ));
             let t0 = Instant::now();
-            let mut last = 0;
             let what = format!("{name} {variant} {bits} s{seed}");
-            let out = embed(&f.scene, &train, &payload, &decoders, &eo, |p| {
-                // The finetuning's steps; the phases before it as phases without steps.
-                let phase = format!("{what} {}", format!("{:?}", p.phase).to_lowercase());
-                let total = if p.phase == crate::embed::pipeline::Phase::Finetune {
-                    p.total
-                } else {
-                    0
-                };
-                log.step(&phase, p.step, total);
-                if p.phase == crate::embed::pipeline::Phase::Calibrate {
-                    // (again after a switch to the coarse decoder: its steps count from 1)
-                    last = 0;
-                }
-                if p.total > 0 && p.step >= last + (p.total / 10).max(1) {
-                    last = p.step;
-                    if let Some(s) = p.log {
-                        log.line(&format!(
-                            "  step {}/{}: train bits {:.3}, {:.1} dB",
-                            p.step, p.total, s.bit_acc_clean, s.psnr
-                        ));
-                    }
-                }
-                ControlFlow::Continue(())
-            })?;
+            let out = embed(
+                &f.scene,
+                &train,
+                &payload,
+                &decoders,
+                &eo,
+                super::embed_progress(log, &what),
+            )?;
             let embed_s = t0.elapsed().as_secs_f64();
             let model = as_disputed(written_for(&decoders, &out.report)?, &out.report);
             let settings = EvalSettings {
