@@ -467,7 +467,9 @@ pub fn finetune(
             .add(low.div_scalar(nv).mul_scalar(w.wav_low));
         StepPhases::lap(&mut phases.watermark, &mut mark);
 
-        // L_vis and the step's squared error (the PSNR the fidelity bound reads).
+        // L_vis and the step's squared error (the PSNR the fidelity bound reads); a coupled
+        // step that weighs L_vis 0 skips computing it.
+        let with_loss = !(cfg.coupled && w.vis == 0.0);
         let host_targets: Vec<&[[f32; 3]]> = picked.iter().map(|&v| &views[v].target[..]).collect();
         let (vis, sq_err, n_px) = if resident {
             routes::visual_on_device(
@@ -477,9 +479,10 @@ pub fn finetune(
                 &targets,
                 w,
                 cfg.dwt_levels,
+                with_loss,
             )?
         } else {
-            routes::visual_on_host(&renders, &host_targets, &dims, w, cfg.dwt_levels)
+            routes::visual_on_host(&renders, &host_targets, &dims, w, cfg.dwt_levels, with_loss)
         };
         StepPhases::lap(&mut phases.visual, &mut mark);
 

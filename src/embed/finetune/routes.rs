@@ -42,7 +42,8 @@ pub(super) enum ImageGrads {
 
 /// L_vis of `renders` (on the device, `device` the GPU's burn device) against `targets`
 /// (`[1, 3, H, W]` on the decoder's autodiff device), and their squared error (clamped
-/// renders) summed, with the count of values — read back as two scalars.
+/// renders) summed, with the count of values — read back as two scalars. Without `with_loss`
+/// (a coupled step that weighs L_vis 0) L_vis is 0 and not computed; the squared error is.
 pub(super) fn visual_on_device(
     renderer: &Renderer,
     device: &Device,
@@ -50,6 +51,7 @@ pub(super) fn visual_on_device(
     targets: &[Tensor<4>],
     w: &LossWeights,
     levels: usize,
+    with_loss: bool,
 ) -> Result<(Visual, f64, usize), FinetuneError> {
     let mut n_px = 0usize;
     let mut xs = Vec::with_capacity(renders.len());
@@ -62,7 +64,11 @@ pub(super) fn visual_on_device(
             })?
             .autodiff()
             .require_grad();
-        let l = visual_loss_tensor(x.clone(), t.clone(), w, levels);
+        let l = if with_loss {
+            visual_loss_tensor(x.clone(), t.clone(), w, levels)
+        } else {
+            Tensor::zeros([1], &t.device())
+        };
         let e = x
             .clone()
             .detach()
@@ -90,20 +96,30 @@ pub(super) fn visual_on_device(
 }
 
 /// L_vis of `renders` against `targets` (row-major RGB) in closed form on the host, view by
-/// view, and their squared error (clamped renders) summed, with the count of values.
+/// view, and their squared error (clamped renders) summed, with the count of values. Without
+/// `with_loss` (a coupled step that weighs L_vis 0) L_vis and its gradient are 0 and not
+/// computed; the squared error is.
 pub(super) fn visual_on_host(
     renders: &[Frame],
     targets: &[&[[f32; 3]]],
     dims: &[(usize, usize)],
     w: &LossWeights,
     levels: usize,
+    with_loss: bool,
 ) -> (Visual, f64, usize) {
-    let per_view: Vec<(f64, Vec<[f32; 3]>)> = renders
-        .par_iter()
-        .zip(targets)
-        .zip(dims)
-        .map(|((r, t), &(wd, ht))| visual_loss(r.image(), t, wd, ht, w, levels))
-        .collect();
+    let per_view: Vec<(f64, Vec<[f32; 3]>)> = if with_loss {
+        renders
+            .par_iter()
+            .zip(targets)
+            .zip(dims)
+            .map(|((r, t), &(wd, ht))| visual_loss(r.image(), t, wd, ht, w, levels))
+            .collect()
+    } else {
+        renders
+            .iter()
+            .map(|r| (0.0, vec![[0.0; 3]; r.image().len()]))
+            .collect()
+    };
     let mut sq_err = 0.0f64;
     let mut n_px = 0usize;
     for (r, t) in renders.iter().zip(targets) {

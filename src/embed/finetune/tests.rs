@@ -252,6 +252,43 @@ fn the_fidelity_bound_holds_the_training_views_and_colour_only_keeps_geometry() 
 }
 
 #[test]
+fn a_coupled_run_that_weighs_the_visual_loss_zero_skips_it_and_the_bound_still_holds() {
+    let (g, views, opts) = setup();
+    let m = model(8);
+    let msg = message();
+    let mk = masks(g.len(), |i| i.is_multiple_of(3), [1.0; 5], [0.0; 5]);
+    let run = |vis: f32| {
+        let cfg = FinetuneConfig {
+            coupled: true,
+            target_psnr: 40.0,
+            wm_lr_scale: 20.0,
+            views_per_step: 4,
+            weights: LossWeights {
+                vis,
+                ..LossWeights::default()
+            },
+            ..config(25)
+        };
+        finetune(&g, &mk, &views, &m, &msg, &cfg, |_| {
+            ControlFlow::Continue(())
+        })
+        .unwrap()
+    };
+    let (with, without) = (run(1.0), run(0.0));
+    assert!(with.log.iter().any(|s| s.l_vis > 0.0));
+    // Weighed 0, L_vis is not computed: every step logs 0 for it ...
+    assert!(without.log.iter().all(|s| s.l_vis == 0.0));
+    // ... but the step's error is still measured (the first step renders the original), and
+    // the fidelity bound still holds.
+    assert!(without.log.iter().skip(1).all(|s| s.psnr.is_finite()));
+    assert!(without.log.iter().any(|s| s.wm_projection < 1.0));
+    let p = mean_psnr(&without.gaussians, &views, &opts);
+    assert!(p > 39.0, "bound 40 dB without L_vis: {p} dB");
+    // Where it is weighed, it acts: the two runs write different colours.
+    assert_ne!(with.gaussians.sh_dc, without.gaussians.sh_dc);
+}
+
+#[test]
 fn a_reference_centres_the_original_on_its_own_views() {
     let (g, views, opts) = setup();
     let m = model(8);
