@@ -32,7 +32,10 @@
 //! - `coupled` (the default recipe, and the paper's ablation "w/o decoupling"): one joint loss
 //!   λ_vis·L_vis + λ_wm·L_wm, its gradient applied to every Gaussian without masks; by default
 //!   on the base colours only ([`LearningRates::colour_only`]). The paper's decoupled recipe is
-//!   [`FinetuneConfig::paper`].
+//!   [`FinetuneConfig::paper`]. Adam divides each colour's step by its gradient's running size,
+//!   so λ_wm and λ_vis weigh little here (ten times λ_wm or λ_vis 0 move no figure on udon;
+//!   λ_vis 0 costs plant 0.3 dB): the learning rate and the fidelity bound set how strong the
+//!   writes are (docs/RESULTS.md, twenty-fifth session). Weighed 0, L_vis is not computed.
 //!
 //! Per Gaussian, the finetuning also accumulates the norm of its (ungated) ∂L_wm over all
 //! steps — over the parameters that move: the SH coefficients when the geometry is fixed —;
