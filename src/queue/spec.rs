@@ -77,7 +77,8 @@ impl JobOptions {
         }
         crate::embed::pipeline::check_view_scales(&embed.view_scales)
             .map_err(|e| format!("options.embed.{e}"))?;
-        crate::embed::pipeline::check_coarse_margin(embed.coarse_margin_db)
+        embed
+            .check_coarse()
             .map_err(|e| format!("options.embed.{e}"))?;
         if embed.view_scales.len() > 4 {
             return Err("options.embed.view_scales: at most 4 factors".into());
@@ -241,6 +242,14 @@ mod tests {
             (
                 json!({"embed": {"coarse_margin_db": -2.0}}),
                 "coarse_margin_db",
+            ),
+            (
+                json!({"embed": {"coarse_wm_lr_factor": 0.0}}),
+                "coarse_wm_lr_factor",
+            ),
+            (
+                json!({"embed": {"coarse_bound_drop_db": 38.0}}),
+                "coarse_bound_drop_db",
             ),
             (
                 json!({"embed": {"projection": {"rank": 16, "matched": false}}}),

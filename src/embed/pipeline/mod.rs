@@ -95,6 +95,21 @@ pub struct EmbedOptions {
     /// clean target and brings udon's robustness up). Off when `target_psnr` is 0 (no bound to
     /// measure the margin from).
     pub coarse_margin_db: Option<f32>,
+    /// How much harder the coarse decoder's finetuning writes after a switch
+    /// ([`EmbedOptions::coarse_margin_db`]): its `finetune.wm_lr_scale` is this many times the
+    /// main run's. A switch means the main run left the budget free, which the default rate does
+    /// not spend: in the coupled recipe the rate and the bound set the write's strength, the
+    /// loss weights barely act (docs/RESULTS.md, "What sets the write's strength on udon").
+    /// In (0, 16]; 1 keeps the main run's rate. Default 2 (docs/RESULTS.md, "The coarse
+    /// run spends the budget the switch finds free").
+    pub coarse_wm_lr_factor: f32,
+    /// How far below `finetune.target_psnr` the coarse decoder's finetuning holds its
+    /// training views after a switch (dB, in [0, 20], and the bound stays above 0): with
+    /// `coarse_wm_lr_factor` the budget the switch found free is spent. 0 keeps the main run's
+    /// bound. Default 1.5 dB: a 36.5 dB bound under the default 38 (plant's third payload, the
+    /// scene that spends the most, then reads 36.9 dB on unseen views; 36.5 at a 2 dB drop,
+    /// 37.4 at 1 dB with the same bits).
+    pub coarse_bound_drop_db: f32,
 }
 
 impl Default for EmbedOptions {
@@ -110,6 +125,8 @@ impl Default for EmbedOptions {
             path: PathConfig::default(),
             analysis_views: 24,
             coarse_margin_db: Some(4.2),
+            coarse_wm_lr_factor: 2.0,
+            coarse_bound_drop_db: 1.5,
         }
     }
 }
@@ -125,6 +142,42 @@ pub fn check_coarse_margin(margin: Option<f32>) -> Result<(), String> {
 }
 
 impl EmbedOptions {
+    /// Checks the decoder choice's options: [`check_coarse_margin`], the coarse run's rate
+    /// factor and bound drop.
+    pub fn check_coarse(&self) -> Result<(), String> {
+        check_coarse_margin(self.coarse_margin_db)?;
+        let f = self.coarse_wm_lr_factor;
+        if !(f > 0.0 && f <= 16.0) {
+            return Err(format!(
+                "coarse_wm_lr_factor is {f}; a factor in (0, 16] (1 keeps the main run's rate)"
+            ));
+        }
+        let d = self.coarse_bound_drop_db;
+        if !(0.0..=20.0).contains(&d) {
+            return Err(format!(
+                "coarse_bound_drop_db is {d}; a drop in [0, 20] dB (0 keeps the main run's bound)"
+            ));
+        }
+        let t = self.finetune.target_psnr;
+        if t > 0.0 && d > 0.0 && t - d <= 0.0 {
+            return Err(format!(
+                "coarse_bound_drop_db {d} takes the bound finetune.target_psnr {t} to 0 or below"
+            ));
+        }
+        Ok(())
+    }
+
+    /// The finetuning options of the coarse decoder's run after a switch: the main run's, at
+    /// `coarse_wm_lr_factor` times the rate and `coarse_bound_drop_db` below the bound.
+    pub fn coarse_finetune(&self) -> FinetuneConfig {
+        let mut f = self.finetune.clone();
+        f.wm_lr_scale *= self.coarse_wm_lr_factor;
+        if f.target_psnr > 0.0 {
+            f.target_psnr -= self.coarse_bound_drop_db;
+        }
+        f
+    }
+
     /// The paper's recipe: [`FinetuneConfig::paper`], plain decoding (no asset reference, the
     /// decoder's own head), the training cameras only.
     pub fn paper() -> Self {
@@ -272,15 +325,35 @@ pub struct DecoderChoice {
     /// Seconds spent on the main decoder's calibration and finetuning before a switch (0
     /// when it kept the main decoder), included in `timings.total`.
     pub discarded_s: f64,
+    /// After a switch: the rate and bound the coarse decoder's finetuning ran at
+    /// ([`EmbedOptions::coarse_finetune`]). Absent in reports from before the options existed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub coarse_run: Option<CoarseRun>,
+}
+
+/// The rate and bound of the coarse decoder's finetuning after a switch.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CoarseRun {
+    /// `finetune.wm_lr_scale` of the coarse run.
+    pub wm_lr_scale: f32,
+    /// `finetune.target_psnr` of the coarse run (dB; 0 = no bound).
+    pub target_psnr: f32,
 }
 
 impl DecoderChoice {
     /// One line for a log: what was measured and chosen.
     pub fn describe(&self) -> String {
         if self.coarse {
+            let run = self.coarse_run.map_or(String::new(), |r| {
+                format!(
+                    "; the coarse run writes at wm_lr_scale {:.1} to a {:.1} dB bound",
+                    r.wm_lr_scale, r.target_psnr
+                )
+            });
             format!(
                 "decoder: coarse (the training views read {:.1} dB at step {}, above {:.1}: the \
-                 asset leaves the fidelity budget free; {:.0} s of the main decoder's run discarded)",
+                 asset leaves the fidelity budget free; {:.0} s of the main decoder's run \
+                 discarded{run})",
                 self.psnr, self.step, self.threshold, self.discarded_s
             )
         } else {
@@ -325,7 +398,9 @@ pub fn embed(
     }
     opts.finetune.validate().map_err(EmbedError::Invalid)?;
     opts.path.validate().map_err(EmbedError::Invalid)?;
-    check_coarse_margin(opts.coarse_margin_db).map_err(EmbedError::Invalid)?;
+    opts.check_coarse().map_err(EmbedError::Invalid)?;
+    let coarse_ft = opts.coarse_finetune();
+    coarse_ft.validate().map_err(EmbedError::Invalid)?;
     // The most steps finetuning may take (it may stop early when `extra_steps` > 0).
     let total = opts.finetune.steps + opts.finetune.extra_steps;
     // A phase's report: `done` steps already done (those a decoder switch discarded).
@@ -401,7 +476,7 @@ pub fn embed(
     // The decoder: the main one, or the coarse one when the check says the asset leaves the
     // fidelity budget free (`coarse_margin_db`); the switch restarts calibration and
     // finetuning, which depend only on their seeds, so the result is the coarse decoder's
-    // own embedding.
+    // own embedding at the coarse run's rate and bound (`coarse_finetune`).
     let threshold = match (&decoders.coarse, opts.coarse_margin_db) {
         (Some(_), Some(m)) if opts.finetune.target_psnr > 0.0 => {
             Some(opts.finetune.target_psnr + m)
@@ -412,6 +487,7 @@ pub fn embed(
     let window = check_window(&opts.finetune);
     let t_first = Instant::now();
     let mut writer = &decoders.main;
+    let mut ft_cfg = &opts.finetune;
     let mut choice: Option<DecoderChoice> = None;
     // Steps a switch discarded: progress counts on from them, so that it never runs backwards.
     let mut discarded_steps = 0;
@@ -460,42 +536,35 @@ pub fn embed(
         let mut psnrs = Vec::new();
         let mut made = None;
         let mut stopped = false;
-        let r = finetune(
-            p.scene(),
-            &p.masks,
-            &views,
-            &model,
-            message,
-            &opts.finetune,
-            |s| {
-                if let Some(threshold) = deciding {
-                    psnrs.push(f64::from(s.psnr));
-                    if s.step == check_at {
-                        let w = &psnrs[psnrs.len() - window.min(psnrs.len())..];
-                        let psnr = w.iter().sum::<f64>() / w.len() as f64;
-                        let c = DecoderChoice {
-                            step: s.step,
-                            psnr: psnr as f32,
-                            threshold,
-                            coarse: psnr > f64::from(threshold),
-                            discarded_s: 0.0,
-                        };
-                        made = Some(c);
-                    }
+        let r = finetune(p.scene(), &p.masks, &views, &model, message, ft_cfg, |s| {
+            if let Some(threshold) = deciding {
+                psnrs.push(f64::from(s.psnr));
+                if s.step == check_at {
+                    let w = &psnrs[psnrs.len() - window.min(psnrs.len())..];
+                    let psnr = w.iter().sum::<f64>() / w.len() as f64;
+                    let c = DecoderChoice {
+                        step: s.step,
+                        psnr: psnr as f32,
+                        threshold,
+                        coarse: psnr > f64::from(threshold),
+                        discarded_s: 0.0,
+                        coarse_run: None,
+                    };
+                    made = Some(c);
                 }
-                let flow = progress(Progress {
-                    phase: Phase::Finetune,
-                    step: discarded_steps + s.step,
-                    total: discarded_steps + s.planned,
-                    log: Some(*s),
-                });
-                stopped = flow.is_break();
-                if !stopped && s.step == check_at && made.is_some_and(|c| c.coarse) {
-                    return ControlFlow::Break(());
-                }
-                flow
-            },
-        );
+            }
+            let flow = progress(Progress {
+                phase: Phase::Finetune,
+                step: discarded_steps + s.step,
+                total: discarded_steps + s.planned,
+                log: Some(*s),
+            });
+            stopped = flow.is_break();
+            if !stopped && s.step == check_at && made.is_some_and(|c| c.coarse) {
+                return ControlFlow::Break(());
+            }
+            flow
+        });
         match r {
             Ok(ft) => {
                 choice = choice.or(made);
@@ -510,9 +579,14 @@ pub fn embed(
             Err(FinetuneError::Cancelled { .. }) if !stopped && made.is_some_and(|c| c.coarse) => {
                 choice = made.map(|c| DecoderChoice {
                     discarded_s: t_first.elapsed().as_secs_f64(),
+                    coarse_run: Some(CoarseRun {
+                        wm_lr_scale: coarse_ft.wm_lr_scale,
+                        target_psnr: coarse_ft.target_psnr,
+                    }),
                     ..c
                 });
                 discarded_steps = check_at;
+                ft_cfg = &coarse_ft;
                 writer = decoders
                     .coarse
                     .as_ref()

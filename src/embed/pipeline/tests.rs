@@ -57,12 +57,12 @@ fn an_asset_with_fidelity_to_spare_is_written_for_the_coarse_decoder() {
         .expect("embeds");
         (e, steps)
     };
-    // A bound of 1 dB: every render is far above it, so the check (step 2 of 10) switches.
-    let o = small(Some(2.0), 1.0);
+    // A bound of 10 dB: every render is far above it, so the check (step 2 of 10) switches.
+    let o = small(Some(2.0), 10.0);
     let (switched, steps) = go(&pair, &o);
     let c = switched.report.choice.expect("a choice was made");
     assert!(
-        c.coarse && c.step == 2 && c.threshold == 3.0 && c.psnr > 3.0,
+        c.coarse && c.step == 2 && c.threshold == 12.0 && c.psnr > 12.0,
         "{c:?}"
     );
     assert_eq!(switched.report.decoder, coarse.digest());
@@ -85,8 +85,13 @@ fn an_asset_with_fidelity_to_spare_is_written_for_the_coarse_decoder() {
     });
     assert!(matches!(stopped, Err(EmbedError::Cancelled)), "{stopped:?}");
     // The switch restarts from the original: the result is the coarse decoder's own
-    // embedding, bit for bit, and so is what the report says a dispute needs.
-    let (alone, _) = go(&Pair::single(coarse.clone()), &o);
+    // embedding at the coarse run's rate and bound, bit for bit, and so is what the report
+    // says a dispute needs.
+    let coarse_o = EmbedOptions {
+        finetune: o.coarse_finetune(),
+        ..o.clone()
+    };
+    let (alone, _) = go(&Pair::single(coarse.clone()), &coarse_o);
     assert!(alone.report.choice.is_none());
     assert_eq!(switched.scene, alone.scene);
     assert_eq!(
@@ -126,4 +131,69 @@ fn an_asset_with_fidelity_to_spare_is_written_for_the_coarse_decoder() {
     })
     .unwrap_err();
     assert!(e.to_string().contains("coarse_margin_db"), "{e}");
+}
+
+#[test]
+fn a_switch_spends_the_free_budget_at_the_coarse_runs_rate_and_bound() {
+    let (pair, g, cams, message) = coarse_fixture();
+    let run = |o: &EmbedOptions| {
+        embed(&g, &cams, &message, &pair, o, |_| ControlFlow::Continue(())).expect("embeds")
+    };
+    let mut same = small(Some(2.0), 30.0);
+    same.coarse_wm_lr_factor = 1.0;
+    same.coarse_bound_drop_db = 0.0;
+    let mut harder = same.clone();
+    harder.coarse_wm_lr_factor = 4.0;
+    harder.coarse_bound_drop_db = 5.0;
+    let (a, b) = (run(&same), run(&harder));
+    // Both switched at the same check (the main runs are the same up to it).
+    let (ca, cb) = (a.report.choice.unwrap(), b.report.choice.unwrap());
+    assert!(ca.coarse && cb.coarse, "{ca:?} {cb:?}");
+    assert_eq!((ca.step, ca.psnr), (cb.step, cb.psnr));
+    // The report says what the coarse run ran at, and the log line names it.
+    let rate = same.finetune.wm_lr_scale;
+    assert_eq!(
+        ca.coarse_run,
+        Some(CoarseRun {
+            wm_lr_scale: rate,
+            target_psnr: 30.0
+        })
+    );
+    assert_eq!(
+        cb.coarse_run,
+        Some(CoarseRun {
+            wm_lr_scale: 4.0 * rate,
+            target_psnr: 25.0
+        })
+    );
+    assert!(cb.describe().contains("25.0 dB bound"), "{}", cb.describe());
+    // Four times the rate writes harder: the watermark loss falls further and the renders
+    // move further from the original.
+    let (la, lb) = (a.log.last().unwrap(), b.log.last().unwrap());
+    assert!(lb.l_wm < la.l_wm, "{la:?} {lb:?}");
+    assert!(lb.psnr < la.psnr, "{la:?} {lb:?}");
+
+    // Out of range, or a drop that takes the bound to 0: refused before anything runs.
+    for (f, d, bound, what) in [
+        (0.0, 0.0, 38.0, "coarse_wm_lr_factor"),
+        (17.0, 0.0, 38.0, "coarse_wm_lr_factor"),
+        (f32::NAN, 0.0, 38.0, "coarse_wm_lr_factor"),
+        (1.0, -1.0, 38.0, "coarse_bound_drop_db"),
+        (1.0, 21.0, 38.0, "coarse_bound_drop_db"),
+        (1.0, 20.0, 20.0, "to 0 or below"),
+    ] {
+        let mut o = small(Some(2.0), bound);
+        o.coarse_wm_lr_factor = f;
+        o.coarse_bound_drop_db = d;
+        let e = embed(
+            &g,
+            &cams,
+            &message,
+            &pair,
+            &o,
+            |_| ControlFlow::Continue(()),
+        )
+        .unwrap_err();
+        assert!(e.to_string().contains(what), "{f} {d} {bound}: {e}");
+    }
 }
