@@ -132,7 +132,7 @@ impl Default for EmbedOptions {
 }
 
 /// Checks [`EmbedOptions::coarse_margin_db`]: a margin in [0, 60] dB, or `None`.
-pub fn check_coarse_margin(margin: Option<f32>) -> Result<(), String> {
+fn check_coarse_margin(margin: Option<f32>) -> Result<(), String> {
     match margin {
         Some(m) if !(0.0..=60.0).contains(&m) => Err(format!(
             "coarse_margin_db is {m}; a margin in [0, 60] dB, or null for never"
@@ -142,8 +142,8 @@ pub fn check_coarse_margin(margin: Option<f32>) -> Result<(), String> {
 }
 
 impl EmbedOptions {
-    /// Checks the decoder choice's options: [`check_coarse_margin`], the coarse run's rate
-    /// factor and bound drop.
+    /// Checks the decoder choice's options: `coarse_margin_db` in [0, 60] dB or `None`, the
+    /// coarse run's rate factor and bound drop.
     pub fn check_coarse(&self) -> Result<(), String> {
         check_coarse_margin(self.coarse_margin_db)?;
         let f = self.coarse_wm_lr_factor;
@@ -399,8 +399,9 @@ pub fn embed(
     opts.finetune.validate().map_err(EmbedError::Invalid)?;
     opts.path.validate().map_err(EmbedError::Invalid)?;
     opts.check_coarse().map_err(EmbedError::Invalid)?;
+    // What the coarse run changes (rate, bound) is checked by `check_coarse`; the rest is
+    // `opts.finetune`, validated above.
     let coarse_ft = opts.coarse_finetune();
-    coarse_ft.validate().map_err(EmbedError::Invalid)?;
     // The most steps finetuning may take (it may stop early when `extra_steps` > 0).
     let total = opts.finetune.steps + opts.finetune.extra_steps;
     // A phase's report: `done` steps already done (those a decoder switch discarded).
