@@ -271,6 +271,28 @@ mod tests {
                 json!({"embed": {"finetune": {"wm_geometry": true}}}),
                 "wm_geometry",
             ),
+            (
+                json!({"embed": {"finetune": {"wm_lr_scale": 0.0}}}),
+                "wm_lr_scale",
+            ),
+            (
+                json!({"embed": {"finetune": {"target_psnr": -38.0}}}),
+                "target_psnr",
+            ),
+            (
+                json!({"embed": {"finetune": {"weights": {"vis": -1.0}}}}),
+                "weights.vis",
+            ),
+            (
+                json!({"embed": {"finetune": {"lr": {"dc": 1e39}}}}),
+                "lr.dc",
+            ),
+            // The coarse run's rate is the main run's times the factor: refused before the job
+            // runs, not at the switch.
+            (
+                json!({"embed": {"finetune": {"wm_lr_scale": 900.0}}}),
+                "coarse run's wm_lr_scale",
+            ),
             (json!({"embed": {"path": {"per_gap": 100}}}), "path.per_gap"),
             (
                 json!({"embed": {"path": {"max_turn_deg": 0.0}}}),

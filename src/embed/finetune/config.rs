@@ -296,6 +296,49 @@ impl FinetuneConfig {
                 self.stretch_bce
             ));
         }
+        if !(self.wm_lr_scale.is_finite() && self.wm_lr_scale > 0.0 && self.wm_lr_scale <= 1000.0) {
+            return Err(format!(
+                "wm_lr_scale must be in (0, 1000], got {}",
+                self.wm_lr_scale
+            ));
+        }
+        if !(self.target_psnr.is_finite() && self.target_psnr >= 0.0) {
+            return Err(format!(
+                "target_psnr must be finite and ≥ 0 (0 = no bound), got {}",
+                self.target_psnr
+            ));
+        }
+        if !((0.0..=1.0).contains(&self.wm_lr_min_fraction)
+            && self.eot_ramp.is_finite()
+            && self.eot_ramp >= 0.0)
+        {
+            return Err(format!(
+                "wm_lr_min_fraction must be in [0, 1] and eot_ramp finite and ≥ 0, got {} and {}",
+                self.wm_lr_min_fraction, self.eot_ramp
+            ));
+        }
+        let l = &self.lr;
+        let w = &self.weights;
+        for (name, v) in [
+            ("lr.means", l.means),
+            ("lr.dc", l.dc),
+            ("lr.rest", l.rest),
+            ("lr.opacity", l.opacity),
+            ("lr.rotation", l.rotation),
+            ("lr.scale", l.scale),
+            ("weights.rec", w.rec),
+            ("weights.dssim", w.dssim),
+            ("weights.wav_high", w.wav_high),
+            ("weights.wm_clean", w.wm_clean),
+            ("weights.wm_eot", w.wm_eot),
+            ("weights.wav_low", w.wav_low),
+            ("weights.vis", w.vis),
+            ("weights.wm", w.wm),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(format!("{name} must be finite and ≥ 0, got {v}"));
+            }
+        }
         if self.coupled && self.wm_geometry {
             // Coupled, every Gaussian steps with `lr` (base colours only by default).
             return Err(

@@ -596,6 +596,47 @@ fn bad_inputs_are_typed_errors() {
                 ..config(1)
             },
         ),
+        (
+            "wm_lr_scale",
+            FinetuneConfig {
+                wm_lr_scale: f32::NAN,
+                ..config(1)
+            },
+        ),
+        (
+            "target_psnr",
+            FinetuneConfig {
+                target_psnr: f32::INFINITY,
+                ..config(1)
+            },
+        ),
+        (
+            "wm_lr_min_fraction",
+            FinetuneConfig {
+                wm_lr_min_fraction: 2.0,
+                ..config(1)
+            },
+        ),
+        (
+            "lr.opacity",
+            FinetuneConfig {
+                lr: LearningRates {
+                    opacity: -0.05,
+                    ..LearningRates::inria()
+                },
+                ..config(1)
+            },
+        ),
+        (
+            "weights.wm",
+            FinetuneConfig {
+                weights: LossWeights {
+                    wm: f32::NAN,
+                    ..LossWeights::default()
+                },
+                ..config(1)
+            },
+        ),
     ] {
         assert!(matches!(
             finetune(&g, &mk, &views, &m, &message(), &cfg, |_| {

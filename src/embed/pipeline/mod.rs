@@ -143,7 +143,8 @@ fn check_coarse_margin(margin: Option<f32>) -> Result<(), String> {
 
 impl EmbedOptions {
     /// Checks the decoder choice's options: `coarse_margin_db` in [0, 60] dB or `None`, the
-    /// coarse run's rate factor and bound drop.
+    /// coarse run's rate factor and bound drop, and — when a switch may happen — the coarse
+    /// run's finetuning options as [`FinetuneConfig::validate`] checks the main run's.
     pub fn check_coarse(&self) -> Result<(), String> {
         check_coarse_margin(self.coarse_margin_db)?;
         let f = self.coarse_wm_lr_factor;
@@ -163,6 +164,15 @@ impl EmbedOptions {
             return Err(format!(
                 "coarse_bound_drop_db {d} takes the bound finetune.target_psnr {t} to 0 or below"
             ));
+        }
+        if self.coarse_margin_db.is_some() {
+            // Checked before the main run, not at the switch: a job must not fail after it.
+            self.coarse_finetune().validate().map_err(|e| {
+                format!(
+                    "the coarse run's {e} (finetune.wm_lr_scale × coarse_wm_lr_factor, \
+                     finetune.target_psnr − coarse_bound_drop_db)"
+                )
+            })?;
         }
         Ok(())
     }
