@@ -285,6 +285,7 @@ impl FinetuneConfig {
             ("eot_remove_max", self.eot_remove_max),
             ("eot_clone_probability", self.eot_clone_probability),
             ("eot_clone_max", self.eot_clone_max),
+            ("wm_lr_min_fraction", self.wm_lr_min_fraction),
         ] {
             if !(0.0..=1.0).contains(&p) {
                 return Err(format!("{name} must be in [0, 1], got {p}"));
@@ -308,18 +309,10 @@ impl FinetuneConfig {
                 self.target_psnr
             ));
         }
-        if !((0.0..=1.0).contains(&self.wm_lr_min_fraction)
-            && self.eot_ramp.is_finite()
-            && self.eot_ramp >= 0.0)
-        {
-            return Err(format!(
-                "wm_lr_min_fraction must be in [0, 1] and eot_ramp finite and ≥ 0, got {} and {}",
-                self.wm_lr_min_fraction, self.eot_ramp
-            ));
-        }
         let l = &self.lr;
         let w = &self.weights;
         for (name, v) in [
+            ("eot_ramp", self.eot_ramp),
             ("lr.means", l.means),
             ("lr.dc", l.dc),
             ("lr.rest", l.rest),
