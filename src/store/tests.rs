@@ -1536,8 +1536,10 @@ async fn expired_lease_is_requeued_then_claimable_and_the_old_token_is_dead() {
     let (dir, store) = setup().await;
     let a = original(&store).await;
     let job = enqueue(&store, a.id, 3).await;
+    // A lease long enough that a loaded CI machine reaches the first check inside it (30 ms
+    // was not: the check once ran after the lease had expired).
     let first = store
-        .claim("w1", Duration::from_millis(30))
+        .claim("w1", Duration::from_millis(1000))
         .await
         .expect("claim")
         .expect("job");
@@ -1546,7 +1548,7 @@ async fn expired_lease_is_requeued_then_claimable_and_the_old_token_is_dead() {
         0,
         "lease still valid"
     );
-    tokio::time::sleep(Duration::from_millis(80)).await;
+    tokio::time::sleep(Duration::from_millis(1300)).await;
     assert_eq!(store.requeue_expired().await.expect("requeue"), 1);
     let j = store.get_job(job.id).await.expect("get").expect("job");
     assert_eq!(j.state, JobState::Queued);
